@@ -1,0 +1,174 @@
+"""The `cosim` command: run | validate | gradcheck | optimize | bench | render.
+
+Every user error (a wrong scene key, a missing file, an unstable step) ends as
+one message on stderr and a non-zero exit code (2: bad scene, 3: simulation
+became invalid, 4: gradient check failed), never a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from cosim.errors import CosimError
+
+DEFAULT_SCENE = "elastic_bounce_2d.yaml"
+
+
+def scenes_dir() -> Path:
+    """The shipped scenes (the repository's scenes/ folder, installed as cosim.scenes)."""
+    from importlib import resources
+
+    return Path(str(resources.files("cosim.scenes")))
+
+
+def resolve_scene(arg: str | None) -> Path:
+    """A scene path: as given, else a shipped scene by name (with or without .yaml)."""
+    if arg is None:
+        return scenes_dir() / DEFAULT_SCENE
+    path = Path(arg)
+    if path.is_file():
+        return path
+    for candidate in (scenes_dir() / arg, scenes_dir() / f"{arg}.yaml"):
+        if candidate.is_file():
+            return candidate
+    return path  # load_scene reports it missing
+
+
+def _load(args, **overrides):
+    from cosim.scene import load_scene
+
+    return load_scene(resolve_scene(args.scene), overrides or None)
+
+
+def cmd_run(args) -> int:
+    from cosim.run import run_scene
+
+    scene = _load(args)
+    out = Path(args.out or f"out/{scene.name}")
+    m = run_scene(scene, out, steps=args.steps, progress=not args.quiet)
+    print(
+        f"{scene.name}: {m['steps']} steps, {m['substeps_total']} substeps, {m['particles']} particles, "
+        f"{m['wall_time_s']:.2f} s ({m['particle_substeps_per_s'] / 1e6:.2f} M particle-substeps/s), "
+        f"max CFL {m['max_cfl']:.3f}"
+    )
+    print(f"wrote {out}/trajectory.npz, {out}/metrics.json" + (f", {out}/{m['preview']}" if "preview" in m else ""))
+    return 0
+
+
+def cmd_validate(args) -> int:
+    from cosim.simulation import build_bodies
+
+    scene = _load(args)
+    bodies = build_bodies(scene)  # also checks meshes and that bodies fit the grid
+    n = sum(b.n for b in bodies)
+    print(f"{args.scene}: valid ({scene.dim}D, {len(bodies)} bodies, {n} particles, grid {scene.cells}, dx {scene.dx:g} m)")
+    return 0
+
+
+def cmd_gradcheck(args) -> int:
+    from cosim.adjoint.gradcheck import check_gradients
+    from cosim.adjoint.objective import Objective
+    from cosim.errors import GradientCheckError
+    from cosim.simulation import Simulation
+
+    scene = _load(args, precision="float64")
+    steps = args.steps or min(scene.steps, 5)
+    sim = Simulation(scene, requires_grad=True, steps=steps)
+    obj = Objective(sim)
+    params = obj.initial_params()
+    names = [p for p in scene.gradient.params if p in params]
+    scales = {
+        "x0": scene.dx,
+        "v0": 1.0,
+        "impulse": float(max(abs(params["impulse"]).max(), sim.mpm.mass.max())) if "impulse" in params else 1.0,
+        "E": float(params["E"].max()),
+        "nu": 0.1,
+    }
+    print(f"gradcheck {scene.name}: {steps} steps x {sim.grad_substeps} substeps, float64, loss {scene.loss.type}")
+    results = check_gradients(obj.evaluate, params, names, scales, args.directions or scene.gradient.directions)
+    print(f"{'param':>8} {'dir':>4} {'adjoint':>16} {'finite diff':>16} {'rel error':>10}")
+    for r in results:
+        print(f"{r.param:>8} {r.direction:>4} {r.adjoint:>16.9e} {r.finite_difference:>16.9e} {r.relative_error:>10.2e}")
+    worst = max(r.relative_error for r in results)
+    tol = args.tolerance or scene.gradient.tolerance
+    print(f"max relative error: {worst:.3e} (tolerance {tol:g})")
+    if worst > tol:
+        raise GradientCheckError(f"adjoint and finite differences disagree: {worst:.3e} > {tol:g}")
+    return 0
+
+
+def cmd_bench(args) -> int:
+    from cosim.bench import run_bench
+
+    return run_bench(args.what, Path(args.out), quick=args.quick)
+
+
+def cmd_render(args) -> int:
+    import numpy as np
+
+    from cosim.render import write_preview
+
+    scene = _load(args)
+    traj = np.load(Path(args.trajectory), allow_pickle=False)
+    names = [str(n) for n in traj["body_names"]]
+    frames = [[traj[f"x_{n}"][i] for n in names] for i in range(len(traj["time"]))]
+    spacing = min(b.spacing or 0.5 * scene.dx for b in scene.mpm.bodies)
+    path = write_preview(
+        Path(args.output), frames, traj["time"], np.asarray(scene.cells) * scene.dx, spacing, scene.output.resolution, scene.output.fps
+    )
+    print(f"wrote {path}")
+    return 0
+
+
+def make_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="cosim", description="Differentiable MPM co-simulation for soft-body manipulation.")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    r = sub.add_parser("run", help="run a scene and write trajectory, metrics and a preview")
+    r.add_argument("scene", nargs="?", help=f"scene file or shipped scene name (default: {DEFAULT_SCENE})")
+    r.add_argument("--out", help="output folder (default: out/SCENE_NAME)")
+    r.add_argument("--steps", type=int, help="macro steps (default: the scene's)")
+    r.add_argument("--quiet", action="store_true", help="no progress bar")
+    r.set_defaults(func=cmd_run)
+
+    v = sub.add_parser("validate", help="check a scene file and report its size")
+    v.add_argument("scene")
+    v.set_defaults(func=cmd_validate)
+
+    g = sub.add_parser("gradcheck", help="adjoint vs central finite differences (float64)")
+    g.add_argument("scene")
+    g.add_argument("--steps", type=int, help="macro steps (default: min(scene steps, 5))")
+    g.add_argument("--directions", type=int, help="random directions per parameter")
+    g.add_argument("--tolerance", type=float, help="largest relative error accepted")
+    g.set_defaults(func=cmd_gradcheck)
+
+    b = sub.add_parser("bench", help="benchmarks: throughput, backward/forward ratio, memory")
+    b.add_argument("what", choices=["mpm"])
+    b.add_argument("--out", default="out/bench", help="folder for the CSV")
+    b.add_argument("--quick", action="store_true", help="fewer substeps (a smoke run)")
+    b.set_defaults(func=cmd_bench)
+
+    rd = sub.add_parser("render", help="render a saved trajectory.npz to a GIF/MP4")
+    rd.add_argument("scene")
+    rd.add_argument("trajectory")
+    rd.add_argument("output")
+    rd.set_defaults(func=cmd_render)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = make_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except CosimError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return exc.exit_code
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

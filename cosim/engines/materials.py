@@ -1,0 +1,142 @@
+"""Constitutive models of the MPM engine, as small objects with Taichi functions.
+
+Each material offers two ``@ti.func`` methods that the P2G / G2P kernels call
+through a compile-time template argument, so the hot kernels hold no
+``if material == ...`` chains:
+
+- ``kirchhoff(F, mu, lam)``: Kirchhoff stress tau = P F^T [Pa * m^d / m^d], from
+  the deformation gradient F and the Lame parameters.
+- ``project(F, mu, lam, yield_stress)``: the return mapping applied to the
+  trial deformation gradient after G2P (plasticity, liquid reset).
+
+Everything is plain arithmetic (no ``ti.svd``) so Taichi's reverse-mode
+autodiff goes through it in 2D and 3D; see ``polar_rotation``.
+"""
+
+
+
+import taichi as ti
+
+SCALED_NEWTON_ITERATIONS = 3
+PLAIN_NEWTON_ITERATIONS = 2
+
+
+@ti.func
+def polar_rotation(F):
+    """Rotation R of the polar decomposition F = R S (S symmetric).
+
+    2D: closed form. 3D: scaled Newton iterations R <- (g R + (g R)^-T) / 2
+    with g = |det R|^(-1/3) (Higham), a fixed count so the result is a
+    differentiable function of F. Six iterations converge to round-off for
+    stretches between 0.05 and 20 (checked in tests/test_materials.py).
+    """
+    R = F
+    if ti.static(F.n == 2):
+        a = F[0, 0] + F[1, 1]
+        b = F[1, 0] - F[0, 1]
+        inv_norm = 1.0 / ti.sqrt(a * a + b * b)
+        c, s = a * inv_norm, b * inv_norm
+        R = ti.Matrix([[c, -s], [s, c]])
+    else:
+        for _ in ti.static(range(SCALED_NEWTON_ITERATIONS)):
+            g = ti.abs(R.determinant()) ** (-1.0 / 3.0)
+            R = 0.5 * (g * R + (1.0 / g) * R.inverse().transpose())
+        for _ in ti.static(range(PLAIN_NEWTON_ITERATIONS)):
+            R = 0.5 * (R + R.inverse().transpose())
+    return R
+
+
+@ti.func
+def corotated_kirchhoff(F, mu, lam):
+    """Fixed corotated stress: tau = 2 mu (F - R) F^T + lam (J - 1) J I."""
+    R = polar_rotation(F)
+    J = F.determinant()
+    eye = ti.Matrix.identity(float, F.n)
+    return 2.0 * mu * (F - R) @ F.transpose() + lam * (J - 1.0) * J * eye
+
+
+@ti.data_oriented
+class Elastic:
+    """Fixed corotated hyperelasticity (Stomakhin et al. 2012)."""
+
+    name = "elastic"
+
+    @ti.func
+    def kirchhoff(self, F, mu, lam):
+        return corotated_kirchhoff(F, mu, lam)
+
+    @ti.func
+    def project(self, F, mu, lam, yield_stress):
+        return F
+
+
+@ti.data_oriented
+class Plastic:
+    """Elasto-plastic: corotated elasticity with a von Mises radial return.
+
+    The strain measure is the corotated (Biot) strain e = S - I with F = R S.
+    Its deviatoric part is scaled back onto the yield surface
+    |dev e| <= sqrt(2/3) * yield_stress / (2 mu), which is von Mises'
+    sqrt(3/2) |dev tau| <= yield_stress with the small-strain relation
+    dev tau = 2 mu dev e. Volume change stays elastic, as in metals and clay.
+    """
+
+    name = "plastic"
+
+    @ti.func
+    def kirchhoff(self, F, mu, lam):
+        return corotated_kirchhoff(F, mu, lam)
+
+    @ti.func
+    def project(self, F, mu, lam, yield_stress):
+        R = polar_rotation(F)
+        S = R.transpose() @ F
+        S = 0.5 * (S + S.transpose())
+        eye = ti.Matrix.identity(float, F.n)
+        strain = S - eye
+        mean = strain.trace() / F.n
+        dev = strain - mean * eye
+        limit = ti.sqrt(2.0 / 3.0) * yield_stress / (2.0 * mu)
+        norm2 = (dev * dev).sum()
+        # min(1, limit/|dev|) without a branch and without sqrt(0) in the adjoint
+        scale = limit / ti.sqrt(ti.max(norm2, limit * limit))
+        return R @ (eye + mean * eye + scale * dev)
+
+
+@ti.data_oriented
+class Liquid:
+    """Weakly compressible liquid: pressure from the volume ratio J, no shear.
+
+    tau = K J (J - 1) I with the bulk modulus K = lam + 2 mu / d. After each
+    G2P the deformation gradient is reset to J^(1/d) I so that only the volume
+    ratio is remembered (no elastic shear memory).
+    """
+
+    name = "liquid"
+
+    @ti.func
+    def kirchhoff(self, F, mu, lam):
+        J = F.determinant()
+        bulk = lam + 2.0 * mu / F.n
+        return bulk * J * (J - 1.0) * ti.Matrix.identity(float, F.n)
+
+    @ti.func
+    def project(self, F, mu, lam, yield_stress):
+        J = F.determinant()
+        return J ** (1.0 / F.n) * ti.Matrix.identity(float, F.n)
+
+
+MATERIALS = {cls.name: cls for cls in (Elastic, Plastic, Liquid)}
+
+
+def lame_parameters(E: float, nu: float, dim: int) -> tuple[float, float]:
+    """Lame parameters (mu, lambda) [Pa] from Young's modulus E [Pa] and Poisson's ratio."""
+    mu = E / (2.0 * (1.0 + nu))
+    lam = E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
+    return mu, lam
+
+
+def wave_speed(E: float, nu: float, density: float, dim: int) -> float:
+    """P-wave speed sqrt((lam + 2 mu) / rho) [m/s], the explicit time-step bound's speed."""
+    mu, lam = lame_parameters(E, nu, dim)
+    return ((lam + 2.0 * mu) / density) ** 0.5

@@ -1,0 +1,399 @@
+"""Differentiable MLS-MPM in Taichi: one implementation for 2D and 3D.
+
+Moving least squares MPM (Hu et al. 2018) with quadratic B-splines and APIC
+affine momentum. Units are SI: positions [m], velocities [m/s], masses [kg],
+stresses [Pa], impulses [N s]. The domain is the box [0, cells * dx]^d.
+
+Particle state lives in *slots*: ``x[slot, p]`` etc. A forward-only engine
+uses two slots (ping-pong). An engine built with ``requires_grad`` keeps
+``substeps + 1`` slots, so one macro step's substep states are all resident
+for Taichi's reverse-mode autodiff; states between macro steps are kept by the
+tape on the host (checkpoints), and ``vjp`` recomputes the substeps of the
+step it differentiates. Memory is O(S N + K N), never O(S K N).
+
+One substep, split into the phases a coupler drives (see DESIGN.md):
+
+- pre-coupling  ``p2g``: stress from F (per material), scatter of mass,
+  APIC momentum, stress momentum and external impulses (controls; the hook for
+  particle-penalty contact) onto the grid;
+- coupling      ``grid_update``: momentum to velocity, gravity, domain walls
+  (the hook for grid / forecast contact on ``grid_v``);
+- post-coupling ``g2p``: gather velocity and affine field, advect, update F
+  and apply the material's return mapping (per material).
+"""
+
+
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import taichi as ti
+
+from cosim.engines.materials import MATERIALS, lame_parameters, wave_speed
+
+
+@dataclass
+class ParticleBody:
+    """One soft body: its particles and material. Arrays are (n, dim)."""
+
+    name: str
+    material: str  # 'elastic' | 'plastic' | 'liquid'
+    E: float  # Young's modulus [Pa]
+    nu: float  # Poisson's ratio [-]
+    density: float  # [kg/m^3]
+    particle_volume: float  # [m^d] volume each particle stands for
+    positions: np.ndarray
+    velocities: np.ndarray
+    yield_stress: float = math.inf  # [Pa], plastic only
+
+    @property
+    def n(self) -> int:
+        return len(self.positions)
+
+    @property
+    def particle_mass(self) -> float:
+        return self.density * self.particle_volume
+
+
+@dataclass
+class MPMConfig:
+    """Grid, walls and gravity. ``cells`` per axis; dx [m]; gravity [m/s^2]."""
+
+    dim: int
+    cells: tuple[int, ...]
+    dx: float
+    gravity: tuple[float, ...]
+    wall: str = "slip"  # 'slip' | 'sticky' | 'none'
+    wall_cells: int = 3
+    requires_grad: bool = False
+    max_substeps: int = 1  # slots for autodiff: substeps per macro step (grad mode)
+    has_controls: bool = False
+    serial_p2g: bool = True  # single-threaded non-atomic scatter (faster on CPUs)
+
+
+@dataclass
+class StepInfo:
+    substeps: int
+    dt: float
+    token: int
+
+
+STATE_KEYS = ("x", "v", "C", "F")
+
+
+@ti.data_oriented
+class MPMEngine:
+    """The MPM engine adapter: ``state`` / ``set_state`` / ``step`` / ``vjp``."""
+
+    def __init__(self, config: MPMConfig, bodies: list[ParticleBody]):
+        if not bodies:
+            raise ValueError("MPMEngine needs at least one body")
+        self.cfg = config
+        self.dim = d = config.dim
+        self.bodies = bodies
+        self.n_particles = n = sum(b.n for b in bodies)
+        self.dx = float(config.dx)
+        self.inv_dx = 1.0 / self.dx
+        starts = np.cumsum([0] + [b.n for b in bodies])
+        self.ranges = [(int(starts[i]), int(starts[i + 1])) for i in range(len(bodies))]
+        self.materials = [MATERIALS[b.material]() for b in bodies]
+        grad = config.requires_grad
+        self.n_slots = config.max_substeps + 1 if grad else 2
+
+        self.x = ti.Vector.field(d, float, shape=(self.n_slots, n), needs_grad=grad)
+        self.v = ti.Vector.field(d, float, shape=(self.n_slots, n), needs_grad=grad)
+        self.C = ti.Matrix.field(d, d, float, shape=(self.n_slots, n), needs_grad=grad)
+        self.F = ti.Matrix.field(d, d, float, shape=(self.n_slots, n), needs_grad=grad)
+        nb = len(bodies)
+        self.E = ti.field(float, shape=nb, needs_grad=grad)
+        self.nu = ti.field(float, shape=nb, needs_grad=grad)
+        self.yield_stress = ti.field(float, shape=nb)
+        self.p_mass = ti.field(float, shape=nb)
+        self.p_vol = ti.field(float, shape=nb)
+        cells = tuple(int(c) for c in config.cells)
+        self.grid_mom = ti.Vector.field(d, float, shape=cells, needs_grad=grad)
+        self.grid_m = ti.field(float, shape=cells, needs_grad=grad)
+        self.grid_v = ti.Vector.field(d, float, shape=cells, needs_grad=grad)
+        self.gravity = ti.Vector([float(g) for g in config.gravity])
+        self.affine = ti.Matrix.field(d, d, float, shape=n, needs_grad=grad)
+        self.control = None
+        if config.has_controls:
+            self.control = ti.Vector.field(d, float, shape=n, needs_grad=grad)
+
+        self.real = np.float64 if self.x.dtype == ti.f64 else np.float32
+        self.E.from_numpy(self._real([b.E for b in bodies]))
+        self.nu.from_numpy(self._real([b.nu for b in bodies]))
+        self.yield_stress.from_numpy(self._real([min(b.yield_stress, 1e30) for b in bodies]))
+        self.p_mass.from_numpy(self._real([b.particle_mass for b in bodies]))
+        self.p_vol.from_numpy(self._real([b.particle_volume for b in bodies]))
+        self.mass = np.concatenate([np.full(b.n, b.particle_mass) for b in bodies])
+        self._slot = 0
+        self._token = 0
+        self._resident = -1  # token of the step whose substeps fill the slots
+        eye = np.broadcast_to(np.eye(d), (n, d, d))
+        self.set_state(
+            {
+                "x": np.concatenate([b.positions for b in bodies]),
+                "v": np.concatenate([b.velocities for b in bodies]),
+                "C": np.zeros((n, d, d)),
+                "F": eye.copy(),
+            }
+        )
+
+    def _real(self, values) -> np.ndarray:
+        """Host array in the engine's precision (float32 or float64)."""
+        return np.asarray(values, dtype=self.real)
+
+    # ------------------------------------------------------------------ kernels
+    @ti.func
+    def _stencil(self, xp):
+        """Base node, fractional position and quadratic B-spline weights."""
+        lim = ti.Vector(self.grid_m.shape) - 3
+        base = ti.max(ti.min(ti.cast(xp * self.inv_dx - 0.5, ti.i32), lim), 0)
+        fx = xp * self.inv_dx - ti.cast(base, float)
+        w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
+        return base, fx, w
+
+    @ti.func
+    def _lame(self, b):
+        E, nu = self.E[b], self.nu[b]
+        return E / (2.0 * (1.0 + nu)), E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
+
+    @ti.kernel
+    def _clear_grid(self):
+        for I in ti.grouped(self.grid_m):
+            self.grid_mom[I] = ti.Vector.zero(float, self.dim)
+            self.grid_m[I] = 0.0
+            self.grid_v[I] = ti.Vector.zero(float, self.dim)
+
+    @ti.kernel
+    def _stress(self, mat: ti.template(), b: ti.i32, start: ti.i32, end: ti.i32, src: ti.i32, dt: float):
+        """Affine momentum per particle: stress term plus APIC m C (parallel)."""
+        for p in range(start, end):
+            mu, lam = self._lame(b)
+            m_p, vol = self.p_mass[b], self.p_vol[b]
+            tau = mat.kirchhoff(self.F[src, p], mu, lam)
+            self.affine[p] = (-dt * vol * 4.0 * self.inv_dx * self.inv_dx) * tau + m_p * self.C[src, p]
+
+    @ti.kernel
+    def _p2g(self, b: ti.i32, start: ti.i32, end: ti.i32, src: ti.i32, control_share: float):
+        """Scatter mass and momentum (serial: non-atomic adds beat atomics on CPUs)."""
+        ti.loop_config(serialize=self.cfg.serial_p2g)
+        for p in range(start, end):
+            m_p = self.p_mass[b]
+            base, fx, w = self._stencil(self.x[src, p])
+            affine = self.affine[p]
+            mom = m_p * self.v[src, p]
+            if ti.static(self.cfg.has_controls):
+                mom += control_share * self.control[p]
+            for offset in ti.static(ti.grouped(ti.ndrange(*([3] * self.dim)))):
+                dpos = (offset - fx) * self.dx
+                weight = 1.0
+                for k in ti.static(range(self.dim)):
+                    weight *= w[offset[k]][k]
+                self.grid_mom[base + offset] += weight * (mom + affine @ dpos)
+                self.grid_m[base + offset] += weight * m_p
+
+    @ti.kernel
+    def _grid_update(self, dt: float, mass_floor: float):
+        for I in ti.grouped(self.grid_m):
+            m = self.grid_m[I]
+            vel = ti.Vector.zero(float, self.dim)
+            if m > mass_floor:
+                vel = self.grid_mom[I] / m + dt * self.gravity
+                if ti.static(self.cfg.wall != "none"):
+                    for k in ti.static(range(self.dim)):
+                        low = I[k] < self.cfg.wall_cells and vel[k] < 0
+                        high = I[k] >= self.grid_m.shape[k] - self.cfg.wall_cells and vel[k] > 0
+                        if low or high:
+                            if ti.static(self.cfg.wall == "sticky"):
+                                vel = ti.Vector.zero(float, self.dim)
+                            else:
+                                vel[k] = 0.0
+            self.grid_v[I] = vel
+
+    @ti.kernel
+    def _g2p(self, mat: ti.template(), b: ti.i32, start: ti.i32, end: ti.i32, src: ti.i32, dst: ti.i32, dt: float):
+        for p in range(start, end):
+            mu, lam = self._lame(b)
+            ys = self.yield_stress[b]
+            xp = self.x[src, p]
+            base, fx, w = self._stencil(xp)
+            new_v = ti.Vector.zero(float, self.dim)
+            new_C = ti.Matrix.zero(float, self.dim, self.dim)
+            for offset in ti.static(ti.grouped(ti.ndrange(*([3] * self.dim)))):
+                dpos = offset - fx
+                weight = 1.0
+                for k in ti.static(range(self.dim)):
+                    weight *= w[offset[k]][k]
+                g_v = self.grid_v[base + offset]
+                new_v += weight * g_v
+                new_C += (4.0 * self.inv_dx * weight) * g_v.outer_product(dpos)
+            self.v[dst, p] = new_v
+            self.C[dst, p] = new_C
+            self.x[dst, p] = xp + dt * new_v
+            F_trial = (ti.Matrix.identity(float, self.dim) + dt * new_C) @ self.F[src, p]
+            self.F[dst, p] = mat.project(F_trial, mu, lam, ys)
+
+    @ti.kernel
+    def _copy_slot(self, src: ti.i32, dst: ti.i32):
+        for p in range(self.n_particles):
+            self.x[dst, p] = self.x[src, p]
+            self.v[dst, p] = self.v[src, p]
+            self.C[dst, p] = self.C[src, p]
+            self.F[dst, p] = self.F[src, p]
+
+    # ------------------------------------------------------------ substep phases
+    def _mass_floor(self) -> float:
+        # Nodes lighter than this are treated as empty: the adjoint of p/m needs
+        # 1/m^2, which overflows float32 at nodes touched by a far weight tail.
+        return 1e-8 * float(min(b.particle_mass for b in self.bodies))
+
+    def pre_coupling(self, src: int, dt: float, control_share: float = 0.0) -> None:
+        """Clear the grid and scatter every body onto it (P2G)."""
+        self._clear_grid()
+        for b, (mat, (lo, hi)) in enumerate(zip(self.materials, self.ranges)):
+            self._stress(mat, b, lo, hi, src, dt)
+            self._p2g(b, lo, hi, src, control_share)
+
+    def coupling(self, dt: float) -> None:
+        """Grid update: velocities, gravity, walls. Contact models hook in here."""
+        self._grid_update(dt, self._mass_floor())
+
+    def post_coupling(self, src: int, dst: int, dt: float) -> None:
+        """Gather from the grid, advect and update deformation (G2P)."""
+        for b, (mat, (lo, hi)) in enumerate(zip(self.materials, self.ranges)):
+            self._g2p(mat, b, lo, hi, src, dst, dt)
+
+    def _substep(self, src: int, dst: int, dt: float, control_share: float) -> None:
+        self.pre_coupling(src, dt, control_share)
+        self.coupling(dt)
+        self.post_coupling(src, dst, dt)
+
+    def _substep_grad(self, src: int, dst: int, dt: float, control_share: float) -> None:
+        """Adjoint of one substep: recompute its grid (scratch), then reverse it."""
+        self._substep(src, dst, dt, control_share)
+        self.grid_mom.grad.fill(0)
+        self.grid_m.grad.fill(0)
+        self.grid_v.grad.fill(0)
+        self.affine.grad.fill(0)
+        for b in reversed(range(len(self.bodies))):
+            lo, hi = self.ranges[b]
+            self._g2p.grad(self.materials[b], b, lo, hi, src, dst, dt)
+        self._grid_update.grad(dt, self._mass_floor())
+        for b in reversed(range(len(self.bodies))):
+            lo, hi = self.ranges[b]
+            self._p2g.grad(b, lo, hi, src, control_share)
+            self._stress.grad(self.materials[b], b, lo, hi, src, dt)
+
+    # ------------------------------------------------------------ the contract
+    def state(self) -> dict[str, np.ndarray]:
+        """Particle state at the current macro step: x (n,d), v (n,d), C (n,d,d), F (n,d,d)."""
+        return {k: getattr(self, k).to_numpy()[self._slot].astype(np.float64) for k in STATE_KEYS}
+
+    def set_state(self, state: dict[str, np.ndarray]) -> None:
+        """Restore a state from ``state()``; the next step starts from it bit for bit."""
+        for k in STATE_KEYS:
+            fld = getattr(self, k)
+            full = fld.to_numpy()
+            full[0] = state[k]
+            fld.from_numpy(self._real(full))
+        self._slot = 0
+        self._resident = -1
+
+    def set_params(self, E: np.ndarray | None = None, nu: np.ndarray | None = None) -> None:
+        """Per-body Young's moduli [Pa] and Poisson's ratios (differentiable inputs)."""
+        if E is not None:
+            self.E.from_numpy(self._real(E))
+        if nu is not None:
+            self.nu.from_numpy(self._real(nu))
+        self._resident = -1
+
+    def params(self) -> dict[str, np.ndarray]:
+        return {"E": self.E.to_numpy().astype(np.float64), "nu": self.nu.to_numpy().astype(np.float64)}
+
+    def _set_control(self, impulse: np.ndarray | None) -> None:
+        if self.control is None:
+            if impulse is not None and np.any(impulse):
+                raise ValueError("this engine was built without controls")
+            return
+        full = np.zeros((self.n_particles, self.dim)) if impulse is None else impulse
+        self.control.from_numpy(self._real(full))
+
+    def step(self, dt: float, substeps: int, impulse: np.ndarray | None = None) -> StepInfo:
+        """Advance one macro step of ``substeps`` substeps of ``dt`` seconds.
+
+        ``impulse`` (n, d) [N s]: the control impulse each particle receives over
+        the whole macro step, spread evenly over its substeps (in P2G).
+        """
+        self._set_control(impulse)
+        share = 1.0 / substeps
+        if self.cfg.requires_grad:
+            if substeps > self.cfg.max_substeps:
+                raise ValueError(f"{substeps} substeps exceed the {self.cfg.max_substeps} slots built for gradients")
+            if self._slot != 0:
+                self._copy_slot(self._slot, 0)
+            for s in range(substeps):
+                self._substep(s, s + 1, dt, share)
+            self._slot = substeps
+        else:
+            for _ in range(substeps):
+                self._substep(self._slot, 1 - self._slot, dt, share)
+                self._slot = 1 - self._slot
+        self._token += 1
+        self._resident = self._token if self.cfg.requires_grad else -1
+        return StepInfo(substeps=substeps, dt=dt, token=self._token)
+
+    def vjp(self, record: dict, grad_state: dict[str, np.ndarray]) -> dict:
+        """Vector-Jacobian product of one macro step.
+
+        ``record``: {'state': state before the step, 'impulse', 'dt', 'substeps',
+        'token'}. ``grad_state``: dL/d(state after) for keys of ``STATE_KEYS``.
+        Returns dL/d(state before), dL/d(impulse) and this step's share of
+        dL/dE and dL/dnu per body. Substeps are recomputed from the record
+        unless they are still resident from the forward pass.
+        """
+        if not self.cfg.requires_grad:
+            raise RuntimeError("this engine was built without gradients (requires_grad=False)")
+        K, dt = record["substeps"], record["dt"]
+        share = 1.0 / K
+        self._set_control(record.get("impulse"))
+        if record.get("token") != self._resident:
+            self.set_state(record["state"])
+            for s in range(K):
+                self._substep(s, s + 1, dt, share)
+            self._slot = K
+        for k in STATE_KEYS:
+            getattr(self, k).grad.fill(0)
+        self.E.grad.fill(0)
+        self.nu.grad.fill(0)
+        if self.control is not None:
+            self.control.grad.fill(0)
+        for k in STATE_KEYS:
+            g = getattr(self, k).grad
+            full = g.to_numpy()
+            full[K] = grad_state[k]
+            g.from_numpy(self._real(full))
+        for s in reversed(range(K)):
+            self._substep_grad(s, s + 1, dt, share)
+        self._resident = -1  # the backward recompute overwrote nothing, but be safe
+        out = {
+            "state": {k: getattr(self, k).grad.to_numpy()[0].astype(np.float64) for k in STATE_KEYS},
+            "E": self.E.grad.to_numpy().astype(np.float64),
+            "nu": self.nu.grad.to_numpy().astype(np.float64),
+        }
+        if self.control is not None:
+            out["impulse"] = self.control.grad.to_numpy().astype(np.float64)
+        return out
+
+    # ------------------------------------------------------------ helpers
+    def body_slices(self) -> dict[str, slice]:
+        return {b.name: slice(lo, hi) for b, (lo, hi) in zip(self.bodies, self.ranges)}
+
+    def max_wave_speed(self) -> float:
+        """Largest P-wave speed of the bodies [m/s] (liquids: the bulk wave)."""
+        return max(wave_speed(b.E, b.nu, b.density, self.dim) for b in self.bodies)
+
+    def lame(self, b: int) -> tuple[float, float]:
+        return lame_parameters(self.bodies[b].E, self.bodies[b].nu, self.dim)

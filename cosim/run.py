@@ -1,0 +1,114 @@
+"""`cosim run`: step a scene, save its trajectory, metrics and a preview."""
+
+from __future__ import annotations
+
+import json
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+
+from cosim.scene import Scene
+
+
+def hardware_line() -> str:
+    """CPU model, core count and memory of this machine, for reports."""
+    import os
+
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    mem = ""
+    try:
+        import psutil
+
+        mem = f", {psutil.virtual_memory().total / 2**30:.0f} GiB"
+    except ImportError:
+        pass
+    return f"{cpu}, {os.cpu_count()} cores{mem}, Python {platform.python_version()}"
+
+
+def run_scene(scene: Scene, out_dir: Path, steps: int | None = None, progress: bool = True, preview: bool = True) -> dict:
+    """Run ``scene`` for ``steps`` macro steps and write the outputs to ``out_dir``.
+
+    Writes ``trajectory.npz``, ``metrics.json`` and ``preview.gif|mp4`` (see
+    docs/outputs.md) and returns the metrics.
+    """
+    from tqdm import tqdm
+
+    from cosim.diagnostics import energies
+    from cosim.simulation import Simulation
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    t_build = time.perf_counter()
+    sim = Simulation(scene, requires_grad=False, steps=steps)
+    build_s = time.perf_counter() - t_build
+    names = list(sim.slices)
+    actions = sim.default_actions()
+    frames, times, energy = [], [], []
+
+    def save_frame() -> None:
+        state = sim.mpm.state()
+        frames.append([state["x"][sl].copy() for sl in sim.slices.values()])
+        times.append(sim.step_index * sim.frame_dt)
+        energy.append(energies(sim.mpm, state, scene.gravity))
+
+    save_frame()
+    substeps = []
+    t0 = time.perf_counter()
+    for n in tqdm(range(sim.steps), desc=scene.name, unit="step", disable=not progress, leave=False):
+        info = sim.step(sim.impulse_field(actions, n))
+        substeps.append(info.substeps)
+        if (n + 1) % scene.output.every == 0 or n + 1 == sim.steps:
+            save_frame()
+    wall = time.perf_counter() - t0
+
+    arrays = {"time": np.asarray(times), "body_names": np.asarray(names)}
+    for i, name in enumerate(names):
+        arrays[f"x_{name}"] = np.stack([f[i] for f in frames]).astype(np.float32)
+    for key in ("kinetic", "gravity", "strain", "total"):
+        arrays[f"energy_{key}"] = np.asarray([e[key] for e in energy])
+    np.savez_compressed(out_dir / "trajectory.npz", **arrays)
+
+    metrics = {
+        "scene": scene.name,
+        "dim": scene.dim,
+        "precision": scene.precision,
+        "arch": scene.arch,
+        "hardware": hardware_line(),
+        "steps": sim.steps,
+        "frame_dt": sim.frame_dt,
+        "substeps_total": int(sum(substeps)),
+        "substeps_per_step": {"min": int(min(substeps)), "max": int(max(substeps))},
+        "particles": int(sim.mpm.n_particles),
+        "bodies": {b.name: {"material": b.material, "particles": b.n} for b in sim.mpm.bodies},
+        "max_cfl": sim.max_cfl,
+        "wall_time_s": wall,
+        "build_time_s": build_s,
+        "particle_substeps_per_s": sim.mpm.n_particles * sum(substeps) / max(wall, 1e-12),
+        "energy_initial": energy[0],
+        "energy_final": energy[-1],
+    }
+    if preview and scene.output.preview != "none":
+        from cosim.render import write_preview
+
+        spacing = min(b.spacing or 0.5 * scene.dx for b in scene.mpm.bodies)
+        path = write_preview(
+            out_dir / f"preview.{scene.output.preview}",
+            frames,
+            np.asarray(times),
+            np.asarray(scene.cells) * scene.dx,
+            spacing,
+            scene.output.resolution,
+            scene.output.fps,
+        )
+        metrics["preview"] = path.name
+    (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    return metrics

@@ -1,0 +1,230 @@
+"""A scene made runnable: builds the engines it needs and steps them safely.
+
+``Simulation`` owns the macro-step loop: it picks the substep count from the
+CFL bound (or checks a fixed one), applies the controls, and stops with a
+``SimulationError`` naming the step, the body and the quantity as soon as a
+step produces NaN/inf, violates the CFL bound or leaves the grid. Scenes with
+only soft bodies build only the MPM engine (no DART, no cloth code).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from cosim.errors import SceneError, SimulationError
+from cosim.scene import Scene
+
+RETRIES = 4  # auto substeps: how often a step is redone with twice the substeps
+
+
+@dataclass
+class Control:
+    """Particles driven by impulses: ``indices`` into the engine's particles."""
+
+    body: str
+    indices: np.ndarray
+    initial: np.ndarray  # (d,) [N s] per particle per macro step
+
+
+def build_bodies(scene: Scene):
+    """Sample every body of the scene into an ``mpm.ParticleBody``."""
+    from cosim.engines.mpm import ParticleBody
+    from cosim.sampling import sample_shape
+
+    rng = np.random.default_rng(scene.seed)
+    bodies = []
+    for i, spec in enumerate(scene.mpm.bodies):
+        spacing = spec.spacing or 0.5 * scene.dx
+        key = f"mpm.bodies[{i}].shape"
+        pts = sample_shape(spec.shape, scene.dim, spacing, spec.jitter, rng, key, scene.source_dir)
+        domain = np.asarray(scene.cells) * scene.dx
+        margin = (scene.mpm.boundary.thickness if scene.mpm.boundary.type != "none" else 2) * scene.dx
+        outside = np.any((pts < margin) | (pts > domain - margin), axis=1)
+        if outside.any():
+            raise SceneError(
+                f"mpm.bodies[{i}] ('{spec.name}'): {int(outside.sum())} particles lie outside the usable grid "
+                f"[{margin:g}, {domain.tolist()} - {margin:g}] m (walls/margin of the domain); move or shrink the shape"
+            )
+        vel = np.zeros_like(pts) + (np.asarray(spec.velocity) if spec.velocity is not None else 0.0)
+        m = spec.material
+        bodies.append(
+            ParticleBody(
+                name=spec.name,
+                material=m.type,
+                E=m.E,
+                nu=m.nu,
+                density=m.density,
+                particle_volume=spacing**scene.dim,
+                positions=pts,
+                velocities=vel,
+                yield_stress=getattr(m, "yield_stress", math.inf),
+            )
+        )
+    return bodies
+
+
+def build_controls(scene: Scene, slices: dict[str, slice], x0: np.ndarray) -> list[Control]:
+    controls = []
+    for i, spec in enumerate(scene.controls):
+        sl = slices[spec.body]
+        idx = np.arange(sl.start, sl.stop)
+        if spec.region is not None:
+            pts = x0[idx]
+            keep = np.all((pts >= spec.region.min) & (pts <= spec.region.max), axis=1)
+            idx = idx[keep]
+        if len(idx) == 0:
+            raise SceneError(f"controls[{i}].region: selects no particle of body '{spec.body}'")
+        initial = np.zeros(scene.dim) if spec.impulse is None else np.asarray(spec.impulse, float)
+        controls.append(Control(spec.body, idx, initial))
+    return controls
+
+
+class Simulation:
+    """The MPM scene runner. ``requires_grad`` builds gradient buffers and fixes K."""
+
+    def __init__(self, scene: Scene, requires_grad: bool = False, steps: int | None = None):
+        from cosim.runtime import ensure_taichi
+
+        self.scene = scene
+        self.steps = steps or scene.steps
+        self.requires_grad = requires_grad
+        ensure_taichi(scene.arch, scene.precision)
+        from cosim.engines.mpm import MPMConfig, MPMEngine
+
+        bodies = build_bodies(scene)
+        self.frame_dt = scene.time.frame_dt
+        self.dx = scene.dx
+        wave = max(_wave_speed(b, scene.dim) for b in bodies)
+        self.wave_speed = wave
+        fixed = scene.time.substeps
+        if fixed:
+            dt = self.frame_dt / fixed
+            if dt * wave / self.dx > 1.0:
+                worst = max(bodies, key=lambda b: _wave_speed(b, scene.dim))
+                need = math.ceil(self.frame_dt * wave / (scene.time.cfl * self.dx))
+                raise SceneError(
+                    f"time.substeps: {fixed} substeps give dt = {dt:.3g} s, above the explicit stability bound "
+                    f"dx / c = {self.dx / wave:.3g} s of body '{worst.name}' (elastic wave speed c = {wave:.3g} m/s "
+                    f"from its E); use at least {need} substeps, or 'auto'"
+                )
+        self.grad_substeps = fixed or self._auto_substeps(
+            max(np.abs(b.velocities).max() for b in bodies) + np.linalg.norm(scene.gravity) * self.frame_dt * self.steps
+        )
+        if self.grad_substeps > scene.time.max_substeps and requires_grad:
+            raise SceneError(
+                f"time.substeps: gradients need a fixed substep count and the CFL bound asks for "
+                f"{self.grad_substeps} > time.max_substeps = {scene.time.max_substeps}; shorten the horizon or frame_dt"
+            )
+        cfg = MPMConfig(
+            dim=scene.dim,
+            cells=scene.cells,
+            dx=self.dx,
+            gravity=scene.gravity,
+            wall=scene.mpm.boundary.type,
+            wall_cells=scene.mpm.boundary.thickness,
+            requires_grad=requires_grad,
+            max_substeps=self.grad_substeps if requires_grad else 1,
+            has_controls=bool(scene.controls),
+        )
+        self.mpm = MPMEngine(cfg, bodies)
+        self.slices = self.mpm.body_slices()
+        self.controls = build_controls(scene, self.slices, self.mpm.state()["x"])
+        self.step_index = 0
+        self.max_cfl = 0.0
+        self.total_substeps = 0
+
+    # ------------------------------------------------------------ time stepping
+    def _auto_substeps(self, speed: float) -> int:
+        """Substeps so that (|v| + c) dt / dx <= cfl, c the fastest elastic wave."""
+        bound = self.scene.time.cfl * self.dx / (speed + self.wave_speed)
+        return max(1, math.ceil(self.frame_dt / bound - 1e-9))
+
+    def default_actions(self) -> list[np.ndarray]:
+        """The scene's initial action sequence: one (n_ctrl, d) array per control."""
+        return [np.broadcast_to(c.initial, (self.steps, len(c.indices), self.scene.dim)).copy() for c in self.controls]
+
+    def impulse_field(self, actions: list[np.ndarray] | None, n: int) -> np.ndarray | None:
+        """Per-particle impulses (N, d) of macro step ``n`` from the control actions."""
+        if not self.controls:
+            return None
+        full = np.zeros((self.mpm.n_particles, self.scene.dim))
+        for c, a in zip(self.controls, actions or self.default_actions()):
+            full[c.indices] += a[n]
+        return full
+
+    def step(self, impulse: np.ndarray | None = None):
+        """One macro step with checks; returns the engine's StepInfo."""
+        state = self.mpm.state()
+        speed = float(np.abs(state["v"]).max()) + np.linalg.norm(self.scene.gravity) * self.frame_dt
+        fixed = self.scene.time.substeps or (self.grad_substeps if self.requires_grad else 0)
+        K = fixed or self._auto_substeps(speed)
+        for attempt in range(RETRIES + 1):
+            if K > self.scene.time.max_substeps:
+                raise SimulationError(
+                    f"step {self.step_index}: the CFL bound needs {K} substeps, more than time.max_substeps = "
+                    f"{self.scene.time.max_substeps} (max speed {speed:.3g} m/s): the simulation is blowing up or "
+                    "frame_dt is too long"
+                )
+            info = self.mpm.step(self.frame_dt / K, K, impulse)
+            after = self.mpm.state()
+            self._check_finite(after)
+            cfl, body = self._cfl(after, self.frame_dt / K)
+            if cfl <= self.scene.time.cfl:
+                break
+            if fixed or attempt == RETRIES:
+                raise SimulationError(
+                    f"step {self.step_index}: CFL number {cfl:.3f} > {self.scene.time.cfl} in body '{body}' "
+                    f"(max |v| dt / dx with dt = {self.frame_dt / K:.3g} s); "
+                    + ("raise time.substeps or set it to 'auto'" if fixed else "the motion is too violent")
+                )
+            self.mpm.set_state(state)
+            K *= 2
+        self._check_domain(after)
+        self.max_cfl = max(self.max_cfl, cfl)
+        self.total_substeps += K
+        self.step_index += 1
+        return info
+
+    # ------------------------------------------------------------ checks
+    def _per_body(self, values: np.ndarray):
+        for name, sl in self.slices.items():
+            yield name, values[sl]
+
+    def _check_finite(self, state: dict[str, np.ndarray]) -> None:
+        names = {"x": "position", "v": "velocity", "F": "deformation gradient", "C": "affine velocity"}
+        for key in ("v", "x", "F", "C"):
+            for body, vals in self._per_body(state[key]):
+                bad = ~np.isfinite(vals.reshape(len(vals), -1)).all(axis=1)
+                if bad.any():
+                    raise SimulationError(
+                        f"step {self.step_index}: body '{body}': non-finite {names[key]} ({key}) in "
+                        f"{int(bad.sum())} particles; the step is unstable: lower time.frame_dt, use more substeps "
+                        "or a smaller time.cfl, or check the material's E"
+                    )
+
+    def _cfl(self, state: dict[str, np.ndarray], dt: float) -> tuple[float, str]:
+        worst, name = 0.0, ""
+        for body, vals in self._per_body(state["v"]):
+            c = float(np.abs(vals).max()) * dt / self.dx
+            if c > worst:
+                worst, name = c, body
+        return worst, name
+
+    def _check_domain(self, state: dict[str, np.ndarray]) -> None:
+        domain = np.asarray(self.scene.cells) * self.dx
+        for body, vals in self._per_body(state["x"]):
+            out = np.any((vals < self.dx) | (vals > domain - 2 * self.dx), axis=1)
+            if out.any():
+                raise SimulationError(
+                    f"step {self.step_index}: body '{body}': {int(out.sum())} particles left the grid domain "
+                    f"[0, {domain.tolist()}] m; enable walls (mpm.boundary.type) or enlarge mpm.grid"
+                )
+
+
+def _wave_speed(body, dim: int) -> float:
+    from cosim.engines.materials import wave_speed
+
+    return wave_speed(body.E, body.nu, body.density, dim)
