@@ -24,7 +24,7 @@ Positive = Annotated[float, Field(gt=0)]
 class Strict(BaseModel):
     """Unknown keys are errors, not silently ignored."""
 
-    model_config = ConfigDict(extra="forbid", frozen=False)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
 # ---------------------------------------------------------------- time, grid
@@ -46,7 +46,11 @@ class TimeSpec(Strict):
 
 
 def _int_or_list(value: Any) -> Any:
-    return [value] if isinstance(value, int) and not isinstance(value, bool) else value
+    if isinstance(value, int) and not isinstance(value, bool):
+        return [value]
+    if not isinstance(value, list):
+        raise ValueError(f"must be an integer or a list of integers (got {value!r})")
+    return value
 
 
 class GridSpec(Strict):
@@ -77,6 +81,7 @@ class PlasticMaterial(_MaterialBase):
 
 class LiquidMaterial(_MaterialBase):
     type: Literal["liquid"]
+    viscosity: Annotated[float, Field(ge=0)] = 0.0  # [Pa s]; water is 1e-3
 
 
 Material = Annotated[Union[ElasticMaterial, PlasticMaterial, LiquidMaterial], Field(discriminator="type")]
@@ -129,6 +134,7 @@ class BodySpec(Strict):
     velocity: Vec | None = None  # [m/s], default at rest
     spacing: Positive | None = None  # [m] particle lattice spacing, default dx / 2
     jitter: Annotated[float, Field(ge=0, le=0.5)] = 0.0  # fraction of spacing
+    hydrostatic: bool = False  # liquids: start compressed by their own weight (at rest)
 
 
 class MPMSpec(Strict):
@@ -291,6 +297,8 @@ def _message(err: dict) -> str:
         return f"unknown type {ctx.get('tag')!r}; choose one of {ctx.get('expected_tags')}"
     if kind == "union_tag_not_found":
         return "missing 'type' key"
+    if kind == "finite_number":
+        return "must be a finite number"
     if kind in ("float_parsing", "float_type"):
         return f"must be a number (got {err.get('input')!r})"
     if kind in ("int_parsing", "int_type", "int_from_float"):
@@ -342,6 +350,8 @@ def _semantic_problems(scene: Scene) -> list[str]:
             if not path.is_file():
                 problems.append(f"{base}.shape.file: file not found: {path}")
         vec(f"{base}.velocity", body.velocity)
+        if body.hydrostatic and body.material.type != "liquid":
+            problems.append(f"{base}.hydrostatic: only liquids can start hydrostatic; remove the key")
         if body.spacing is not None and body.spacing > scene.dx:
             problems.append(
                 f"{base}.spacing: {body.spacing} is coarser than the grid spacing dx = {scene.dx:g}; "

@@ -50,6 +50,7 @@ def build_bodies(scene: Scene):
             )
         vel = np.zeros_like(pts) + (np.asarray(spec.velocity) if spec.velocity is not None else 0.0)
         m = spec.material
+        deformation = hydrostatic_deformation(pts, spacing, m, scene.gravity) if spec.hydrostatic else None
         bodies.append(
             ParticleBody(
                 name=spec.name,
@@ -61,9 +62,32 @@ def build_bodies(scene: Scene):
                 positions=pts,
                 velocities=vel,
                 yield_stress=getattr(m, "yield_stress", math.inf),
+                viscosity=getattr(m, "viscosity", 0.0),
+                deformation=deformation,
             )
         )
     return bodies
+
+
+def hydrostatic_deformation(pts: np.ndarray, spacing: float, material, gravity) -> np.ndarray:
+    """F = J^(1/d) I with J = 1 - rho |g| depth / K: the liquid's own weight balanced.
+
+    The pressure law sigma = K (J - 1) I makes the Cauchy pressure
+    p = K (1 - J); depth is measured along gravity from the body's top.
+    """
+    from cosim.engines.materials import lame_parameters
+
+    dim = pts.shape[1]
+    g = np.asarray(gravity, dtype=np.float64)
+    g_norm = np.linalg.norm(g)
+    if g_norm == 0:
+        return np.broadcast_to(np.eye(dim), (len(pts), dim, dim)).copy()
+    up = -g / g_norm
+    height = pts @ up
+    depth = height.max() + 0.5 * spacing - height
+    mu, lam = lame_parameters(material.E, material.nu, dim)
+    J = 1.0 - material.density * g_norm * depth / (lam + 2.0 * mu / dim)
+    return J[:, None, None] ** (1.0 / dim) * np.eye(dim)[None]
 
 
 def build_controls(scene: Scene, slices: dict[str, slice], x0: np.ndarray) -> list[Control]:
@@ -216,7 +240,7 @@ class Simulation:
     def _check_domain(self, state: dict[str, np.ndarray]) -> None:
         domain = np.asarray(self.scene.cells) * self.dx
         for body, vals in self._per_body(state["x"]):
-            out = np.any((vals < self.dx) | (vals > domain - 2 * self.dx), axis=1)
+            out = np.any((vals < self.dx) | (vals > domain - self.dx), axis=1)
             if out.any():
                 raise SimulationError(
                     f"step {self.step_index}: body '{body}': {int(out.sum())} particles left the grid domain "

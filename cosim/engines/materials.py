@@ -4,8 +4,9 @@ Each material offers two ``@ti.func`` methods that the P2G / G2P kernels call
 through a compile-time template argument, so the hot kernels hold no
 ``if material == ...`` chains:
 
-- ``kirchhoff(F, mu, lam)``: Kirchhoff stress tau = P F^T [Pa * m^d / m^d], from
-  the deformation gradient F and the Lame parameters.
+- ``kirchhoff(F, C, mu, lam, eta)``: Kirchhoff stress tau = P F^T [Pa], from
+  the deformation gradient F, the APIC affine velocity C (~ grad v, for
+  viscosity), the Lame parameters and the viscosity eta [Pa s].
 - ``project(F, mu, lam, yield_stress)``: the return mapping applied to the
   trial deformation gradient after G2P (plasticity, liquid reset).
 
@@ -62,7 +63,7 @@ class Elastic:
     name = "elastic"
 
     @ti.func
-    def kirchhoff(self, F, mu, lam):
+    def kirchhoff(self, F, C, mu, lam, eta):
         return corotated_kirchhoff(F, mu, lam)
 
     @ti.func
@@ -84,7 +85,7 @@ class Plastic:
     name = "plastic"
 
     @ti.func
-    def kirchhoff(self, F, mu, lam):
+    def kirchhoff(self, F, C, mu, lam, eta):
         return corotated_kirchhoff(F, mu, lam)
 
     @ti.func
@@ -107,7 +108,8 @@ class Plastic:
 class Liquid:
     """Weakly compressible liquid: pressure from the volume ratio J, no shear.
 
-    tau = K J (J - 1) I with the bulk modulus K = lam + 2 mu / d. After each
+    tau = K J (J - 1) I + J eta (C + C^T) with the bulk modulus
+    K = lam + 2 mu / d and the viscosity eta (C ~ grad v). After each
     G2P the deformation gradient is reset to J^(1/d) I so that only the volume
     ratio is remembered (no elastic shear memory).
     """
@@ -115,10 +117,10 @@ class Liquid:
     name = "liquid"
 
     @ti.func
-    def kirchhoff(self, F, mu, lam):
+    def kirchhoff(self, F, C, mu, lam, eta):
         J = F.determinant()
         bulk = lam + 2.0 * mu / F.n
-        return bulk * J * (J - 1.0) * ti.Matrix.identity(float, F.n)
+        return bulk * J * (J - 1.0) * ti.Matrix.identity(float, F.n) + J * eta * (C + C.transpose())
 
     @ti.func
     def project(self, F, mu, lam, yield_stress):

@@ -46,6 +46,8 @@ class ParticleBody:
     positions: np.ndarray
     velocities: np.ndarray
     yield_stress: float = math.inf  # [Pa], plastic only
+    viscosity: float = 0.0  # [Pa s], liquid only
+    deformation: np.ndarray | None = None  # (n, d, d) initial F, default identity
 
     @property
     def n(self) -> int:
@@ -109,12 +111,13 @@ class MPMEngine:
         self.E = ti.field(float, shape=nb, needs_grad=grad)
         self.nu = ti.field(float, shape=nb, needs_grad=grad)
         self.yield_stress = ti.field(float, shape=nb)
+        self.viscosity = ti.field(float, shape=nb)
         self.p_mass = ti.field(float, shape=nb)
         self.p_vol = ti.field(float, shape=nb)
-        cells = tuple(int(c) for c in config.cells)
-        self.grid_mom = ti.Vector.field(d, float, shape=cells, needs_grad=grad)
-        self.grid_m = ti.field(float, shape=cells, needs_grad=grad)
-        self.grid_v = ti.Vector.field(d, float, shape=cells, needs_grad=grad)
+        nodes = tuple(int(c) + 1 for c in config.cells)  # nodes at 0, dx, ..., cells * dx
+        self.grid_mom = ti.Vector.field(d, float, shape=nodes, needs_grad=grad)
+        self.grid_m = ti.field(float, shape=nodes, needs_grad=grad)
+        self.grid_v = ti.Vector.field(d, float, shape=nodes, needs_grad=grad)
         self.gravity = ti.Vector([float(g) for g in config.gravity])
         self.affine = ti.Matrix.field(d, d, float, shape=n, needs_grad=grad)
         self.control = None
@@ -125,19 +128,20 @@ class MPMEngine:
         self.E.from_numpy(self._real([b.E for b in bodies]))
         self.nu.from_numpy(self._real([b.nu for b in bodies]))
         self.yield_stress.from_numpy(self._real([min(b.yield_stress, 1e30) for b in bodies]))
+        self.viscosity.from_numpy(self._real([b.viscosity for b in bodies]))
         self.p_mass.from_numpy(self._real([b.particle_mass for b in bodies]))
         self.p_vol.from_numpy(self._real([b.particle_volume for b in bodies]))
         self.mass = np.concatenate([np.full(b.n, b.particle_mass) for b in bodies])
         self._slot = 0
         self._token = 0
         self._resident = -1  # token of the step whose substeps fill the slots
-        eye = np.broadcast_to(np.eye(d), (n, d, d))
+        eye = np.eye(d)
         self.set_state(
             {
                 "x": np.concatenate([b.positions for b in bodies]),
                 "v": np.concatenate([b.velocities for b in bodies]),
                 "C": np.zeros((n, d, d)),
-                "F": eye.copy(),
+                "F": np.concatenate([np.broadcast_to(eye, (b.n, d, d)) if b.deformation is None else b.deformation for b in bodies]),
             }
         )
 
@@ -173,7 +177,7 @@ class MPMEngine:
         for p in range(start, end):
             mu, lam = self._lame(b)
             m_p, vol = self.p_mass[b], self.p_vol[b]
-            tau = mat.kirchhoff(self.F[src, p], mu, lam)
+            tau = mat.kirchhoff(self.F[src, p], self.C[src, p], mu, lam, self.viscosity[b])
             self.affine[p] = (-dt * vol * 4.0 * self.inv_dx * self.inv_dx) * tau + m_p * self.C[src, p]
 
     @ti.kernel
@@ -205,7 +209,7 @@ class MPMEngine:
                 if ti.static(self.cfg.wall != "none"):
                     for k in ti.static(range(self.dim)):
                         low = I[k] < self.cfg.wall_cells and vel[k] < 0
-                        high = I[k] >= self.grid_m.shape[k] - self.cfg.wall_cells and vel[k] > 0
+                        high = I[k] > self.grid_m.shape[k] - 1 - self.cfg.wall_cells and vel[k] > 0
                         if low or high:
                             if ti.static(self.cfg.wall == "sticky"):
                                 vel = ti.Vector.zero(float, self.dim)
@@ -246,8 +250,12 @@ class MPMEngine:
 
     # ------------------------------------------------------------ substep phases
     def _mass_floor(self) -> float:
-        # Nodes lighter than this are treated as empty: the adjoint of p/m needs
-        # 1/m^2, which overflows float32 at nodes touched by a far weight tail.
+        # float32 only: nodes lighter than 1e-8 particle masses count as empty,
+        # since the adjoint of p/m needs 1/m^2, which overflows float32 at nodes
+        # touched only by a far weight tail. The momentum so dropped is below
+        # float32 round-off; float64 needs no floor and keeps momentum exact.
+        if self.real == np.float64:
+            return 0.0
         return 1e-8 * float(min(b.particle_mass for b in self.bodies))
 
     def pre_coupling(self, src: int, dt: float, control_share: float = 0.0) -> None:

@@ -1,0 +1,59 @@
+"""Shared fixtures. Taichi runs once per process, here in float64 on the CPU:
+gradient tests need float64, and sharing one configuration lets every test in
+the session reuse compiled kernels."""
+
+from __future__ import annotations
+
+import copy
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+SCENES = ROOT / "scenes"
+
+
+@pytest.fixture(scope="session", autouse=True)
+def taichi_float64():
+    from cosim.runtime import ensure_taichi
+
+    ensure_taichi("cpu", "float64")
+
+
+def scene_dict(**overrides) -> dict:
+    """A small valid 2D scene as Python data; ``overrides`` replace top-level keys."""
+    base = {
+        "name": "tiny",
+        "dim": 2,
+        "precision": "float64",
+        "steps": 5,
+        "time": {"frame_dt": 2e-3, "substeps": "auto"},
+        "mpm": {
+            "grid": {"cells": 32},
+            "bodies": [
+                {
+                    "name": "block",
+                    "material": {"type": "elastic", "E": 2e3, "nu": 0.3, "density": 1000},
+                    "shape": {"type": "box", "center": [0.5, 0.5], "size": [0.25, 0.25]},
+                }
+            ],
+        },
+    }
+    base = copy.deepcopy(base)
+    base.update(copy.deepcopy(overrides))
+    return base
+
+
+def make_scene(**overrides):
+    from cosim.scene import parse_scene
+
+    return parse_scene(scene_dict(**overrides), ROOT)
+
+
+def run_cli(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
+    """Run `cosim ...` in a fresh process (its own Taichi start-up)."""
+    return subprocess.run(
+        [sys.executable, "-m", "cosim.cli", *args], capture_output=True, text=True, cwd=cwd or ROOT, timeout=900
+    )
