@@ -24,6 +24,7 @@ class Objective:
     def __init__(self, sim: Simulation):
         self.sim = sim
         self.initial_state = sim.mpm.state()
+        self.initial_material = sim.mpm.params()  # evaluations overwrite the engine's copy
         self.loss = Loss(sim.scene, sim.slices, sim.mpm.mass)
         self.tape = Tape()
         self.ctrl_index = (
@@ -32,7 +33,7 @@ class Objective:
 
     def initial_params(self) -> dict[str, np.ndarray]:
         s = self.initial_state
-        out = {"x0": s["x"].copy(), "v0": s["v"].copy(), **self.sim.mpm.params()}
+        out = {"x0": s["x"].copy(), "v0": s["v"].copy(), **{k: v.copy() for k, v in self.initial_material.items()}}
         if self.sim.controls:
             out["impulse"] = np.concatenate(self.sim.default_actions(), axis=1)
         return out
@@ -49,7 +50,7 @@ class Objective:
         sim = self.sim
         s0 = dict(self.initial_state, x=params["x0"], v=params["v0"])
         sim.mpm.set_state(s0)
-        sim.mpm.set_params(E=params.get("E"), nu=params.get("nu"))
+        sim.mpm.set_params(E=params.get("E", self.initial_material["E"]), nu=params.get("nu", self.initial_material["nu"]))
         sim.step_index = 0
         self.tape.clear()
         for n in range(sim.steps):
