@@ -32,7 +32,7 @@ def _polar(F: ti.types.ndarray(), R: ti.types.ndarray(), dim: ti.template()):
             R[i, a, b] = r[a, b]
 
 
-@pytest.mark.parametrize("dim,lo,hi,tol", [(2, 0.05, 20, 1e-12), (3, 0.5, 2, 1e-13), (3, 0.2, 5, 1e-10), (3, 0.05, 20, 1e-5)])
+@pytest.mark.parametrize("dim,lo,hi,tol", [(2, 0.05, 20, 1e-12), (3, 0.5, 2, 1e-13), (3, 0.2, 5, 1e-11), (3, 0.05, 20, 1e-7)])
 def test_polar_rotation_matches_svd(dim, lo, hi, tol):
     """R = U V^T of the SVD; our Newton iteration's documented accuracy per stretch range."""
     F = random_deformations(200, dim, lo, hi)

@@ -40,8 +40,9 @@ def polar_rotation(F):
         R = ti.Matrix([[c, -s], [s, c]])
     else:
         for _ in ti.static(range(SCALED_NEWTON_ITERATIONS)):
-            g = ti.abs(R.determinant()) ** (-1.0 / 3.0)
-            R = 0.5 * (g * R + (1.0 / g) * R.inverse().transpose())
+            R_inv_t = R.inverse().transpose()
+            g = ti.sqrt(ti.sqrt((R_inv_t * R_inv_t).sum() / (R * R).sum()))
+            R = 0.5 * (g * R + (1.0 / g) * R_inv_t)
         for _ in ti.static(range(PLAIN_NEWTON_ITERATIONS)):
             R = 0.5 * (R + R.inverse().transpose())
     return R

@@ -132,6 +132,7 @@ class MPMEngine:
         self.p_mass.from_numpy(self._real([b.particle_mass for b in bodies]))
         self.p_vol.from_numpy(self._real([b.particle_volume for b in bodies]))
         self.mass = np.concatenate([np.full(b.n, b.particle_mass) for b in bodies])
+        self._serial = bool(config.serial_p2g)
         self._slot = 0
         self._token = 0
         self._resident = -1  # token of the step whose substeps fill the slots
@@ -181,9 +182,10 @@ class MPMEngine:
             self.affine[p] = (-dt * vol * 4.0 * self.inv_dx * self.inv_dx) * tau + m_p * self.C[src, p]
 
     @ti.kernel
-    def _p2g(self, b: ti.i32, start: ti.i32, end: ti.i32, src: ti.i32, control_share: float):
-        """Scatter mass and momentum (serial: non-atomic adds beat atomics on CPUs)."""
-        ti.loop_config(serialize=self.cfg.serial_p2g)
+    def _p2g(self, serial: ti.template(), b: ti.i32, start: ti.i32, end: ti.i32, src: ti.i32, control_share: float):
+        """Scatter mass and momentum. ``serial``: one thread, non-atomic adds (faster than
+        atomics on CPUs); its adjoint is a gather and runs with ``serial=False``."""
+        ti.loop_config(serialize=serial)
         for p in range(start, end):
             m_p = self.p_mass[b]
             base, fx, w = self._stencil(self.x[src, p])
@@ -216,9 +218,16 @@ class MPMEngine:
                             else:
                                 vel[k] = 0.0
             self.grid_v[I] = vel
+            if ti.static(not self.cfg.requires_grad):
+                # forward-only: leave the grid cleared for the next P2G (saves a pass);
+                # with gradients the backward pass still needs these values
+                self.grid_mom[I] = ti.Vector.zero(float, self.dim)
+                self.grid_m[I] = 0.0
 
     @ti.kernel
-    def _g2p(self, mat: ti.template(), b: ti.i32, start: ti.i32, end: ti.i32, src: ti.i32, dst: ti.i32, dt: float):
+    def _g2p(self, mat: ti.template(), serial: ti.template(), b: ti.i32, start: ti.i32, end: ti.i32, src: ti.i32, dst: ti.i32, dt: float):
+        """Gather, advect, update F. A parallel gather; its adjoint scatters, so it runs with ``serial=True``."""
+        ti.loop_config(serialize=serial)
         for p in range(start, end):
             mu, lam = self._lame(b)
             ys = self.yield_stress[b]
@@ -248,6 +257,36 @@ class MPMEngine:
             self.C[dst, p] = self.C[src, p]
             self.F[dst, p] = self.F[src, p]
 
+    @ti.kernel
+    def _read_slot(self, fld: ti.template(), slot: ti.i32, out: ti.types.ndarray()):
+        """Copy one slot of a particle field (or its adjoint) into out (n, d) or (n, d, d)."""
+        for p in range(self.n_particles):
+            if ti.static(fld.m == 1):
+                for i in ti.static(range(fld.n)):
+                    out[p, i] = fld[slot, p][i]
+            else:
+                for i, j in ti.static(ti.ndrange(fld.n, fld.m)):
+                    out[p, i, j] = fld[slot, p][i, j]
+
+    @ti.kernel
+    def _write_slot(self, fld: ti.template(), slot: ti.i32, src: ti.types.ndarray()):
+        for p in range(self.n_particles):
+            if ti.static(fld.m == 1):
+                for i in ti.static(range(fld.n)):
+                    fld[slot, p][i] = src[p, i]
+            else:
+                for i, j in ti.static(ti.ndrange(fld.n, fld.m)):
+                    fld[slot, p][i, j] = src[p, i, j]
+
+    def _get(self, fld, slot: int) -> np.ndarray:
+        shape = (self.n_particles, self.dim) if fld.m == 1 else (self.n_particles, self.dim, self.dim)
+        out = np.empty(shape, dtype=self.real)
+        self._read_slot(fld, slot, out)
+        return out.astype(np.float64)
+
+    def _put(self, fld, slot: int, values: np.ndarray) -> None:
+        self._write_slot(fld, slot, np.ascontiguousarray(values, dtype=self.real))
+
     # ------------------------------------------------------------ substep phases
     def _mass_floor(self) -> float:
         # float32 only: nodes lighter than 1e-8 particle masses count as empty,
@@ -260,10 +299,11 @@ class MPMEngine:
 
     def pre_coupling(self, src: int, dt: float, control_share: float = 0.0) -> None:
         """Clear the grid and scatter every body onto it (P2G)."""
-        self._clear_grid()
+        if self.cfg.requires_grad:  # forward-only engines clear it in grid_update
+            self._clear_grid()
         for b, (mat, (lo, hi)) in enumerate(zip(self.materials, self.ranges)):
             self._stress(mat, b, lo, hi, src, dt)
-            self._p2g(b, lo, hi, src, control_share)
+            self._p2g(self._serial, b, lo, hi, src, control_share)
 
     def coupling(self, dt: float) -> None:
         """Grid update: velocities, gravity, walls. Contact models hook in here."""
@@ -272,7 +312,7 @@ class MPMEngine:
     def post_coupling(self, src: int, dst: int, dt: float) -> None:
         """Gather from the grid, advect and update deformation (G2P)."""
         for b, (mat, (lo, hi)) in enumerate(zip(self.materials, self.ranges)):
-            self._g2p(mat, b, lo, hi, src, dst, dt)
+            self._g2p(mat, False, b, lo, hi, src, dst, dt)
 
     def _substep(self, src: int, dst: int, dt: float, control_share: float) -> None:
         self.pre_coupling(src, dt, control_share)
@@ -280,33 +320,34 @@ class MPMEngine:
         self.post_coupling(src, dst, dt)
 
     def _substep_grad(self, src: int, dst: int, dt: float, control_share: float) -> None:
-        """Adjoint of one substep: recompute its grid (scratch), then reverse it."""
-        self._substep(src, dst, dt, control_share)
+        """Adjoint of one substep: recompute its grid (scratch), then reverse it.
+
+        G2P's outputs already sit in slot ``dst``; only the scratch (affine
+        stress, grid) written before it is recomputed."""
+        self.pre_coupling(src, dt, control_share)
+        self.coupling(dt)
         self.grid_mom.grad.fill(0)
         self.grid_m.grad.fill(0)
         self.grid_v.grad.fill(0)
         self.affine.grad.fill(0)
         for b in reversed(range(len(self.bodies))):
             lo, hi = self.ranges[b]
-            self._g2p.grad(self.materials[b], b, lo, hi, src, dst, dt)
+            self._g2p.grad(self.materials[b], self._serial, b, lo, hi, src, dst, dt)
         self._grid_update.grad(dt, self._mass_floor())
         for b in reversed(range(len(self.bodies))):
             lo, hi = self.ranges[b]
-            self._p2g.grad(b, lo, hi, src, control_share)
+            self._p2g.grad(False, b, lo, hi, src, control_share)
             self._stress.grad(self.materials[b], b, lo, hi, src, dt)
 
     # ------------------------------------------------------------ the contract
     def state(self) -> dict[str, np.ndarray]:
         """Particle state at the current macro step: x (n,d), v (n,d), C (n,d,d), F (n,d,d)."""
-        return {k: getattr(self, k).to_numpy()[self._slot].astype(np.float64) for k in STATE_KEYS}
+        return {k: self._get(getattr(self, k), self._slot) for k in STATE_KEYS}
 
     def set_state(self, state: dict[str, np.ndarray]) -> None:
         """Restore a state from ``state()``; the next step starts from it bit for bit."""
         for k in STATE_KEYS:
-            fld = getattr(self, k)
-            full = fld.to_numpy()
-            full[0] = state[k]
-            fld.from_numpy(self._real(full))
+            self._put(getattr(self, k), 0, state[k])
         self._slot = 0
         self._resident = -1
 
@@ -379,15 +420,12 @@ class MPMEngine:
         if self.control is not None:
             self.control.grad.fill(0)
         for k in STATE_KEYS:
-            g = getattr(self, k).grad
-            full = g.to_numpy()
-            full[K] = grad_state[k]
-            g.from_numpy(self._real(full))
+            self._put(getattr(self, k).grad, K, grad_state[k])
         for s in reversed(range(K)):
             self._substep_grad(s, s + 1, dt, share)
         self._resident = -1  # the backward recompute overwrote nothing, but be safe
         out = {
-            "state": {k: getattr(self, k).grad.to_numpy()[0].astype(np.float64) for k in STATE_KEYS},
+            "state": {k: self._get(getattr(self, k).grad, 0) for k in STATE_KEYS},
             "E": self.E.grad.to_numpy().astype(np.float64),
             "nu": self.nu.grad.to_numpy().astype(np.float64),
         }
