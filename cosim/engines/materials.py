@@ -23,6 +23,27 @@ PLAIN_NEWTON_ITERATIONS = 2
 
 
 @ti.func
+def inverse_transpose_3(R):
+    """R^-T of a 3x3 matrix: its cofactor matrix over its determinant.
+
+    Written out because it is about twice as fast as ``R.inverse().transpose()``
+    on the CPU, and it sits in the innermost loop of the 3D stress.
+    """
+    c00 = R[1, 1] * R[2, 2] - R[1, 2] * R[2, 1]
+    c01 = R[1, 2] * R[2, 0] - R[1, 0] * R[2, 2]
+    c02 = R[1, 0] * R[2, 1] - R[1, 1] * R[2, 0]
+    inv_det = 1.0 / (R[0, 0] * c00 + R[0, 1] * c01 + R[0, 2] * c02)
+    cof = ti.Matrix(
+        [
+            [c00, c01, c02],
+            [R[0, 2] * R[2, 1] - R[0, 1] * R[2, 2], R[0, 0] * R[2, 2] - R[0, 2] * R[2, 0], R[0, 1] * R[2, 0] - R[0, 0] * R[2, 1]],
+            [R[0, 1] * R[1, 2] - R[0, 2] * R[1, 1], R[0, 2] * R[1, 0] - R[0, 0] * R[1, 2], R[0, 0] * R[1, 1] - R[0, 1] * R[1, 0]],
+        ]
+    )
+    return inv_det * cof
+
+
+@ti.func
 def polar_rotation(F):
     """Rotation R of the polar decomposition F = R S (S symmetric).
 
@@ -40,11 +61,11 @@ def polar_rotation(F):
         R = ti.Matrix([[c, -s], [s, c]])
     else:
         for _ in ti.static(range(SCALED_NEWTON_ITERATIONS)):
-            R_inv_t = R.inverse().transpose()
-            g = ti.sqrt(ti.sqrt((R_inv_t * R_inv_t).sum() / (R * R).sum()))
+            R_inv_t = inverse_transpose_3(R)
+            g = ti.sqrt(ti.sqrt(R_inv_t.norm_sqr() / R.norm_sqr()))
             R = 0.5 * (g * R + (1.0 / g) * R_inv_t)
         for _ in ti.static(range(PLAIN_NEWTON_ITERATIONS)):
-            R = 0.5 * (R + R.inverse().transpose())
+            R = 0.5 * (R + inverse_transpose_3(R))
     return R
 
 
