@@ -55,7 +55,7 @@ def measure(dim: int, cells: int, side: int, precision: str, substeps: int, macr
     fwd.state()  # synchronise
     fwd_s = time.perf_counter() - t
 
-    grad = MPMEngine(MPMConfig(dim, (cells,) * dim, dx, gravity, requires_grad=True, max_substeps=substeps), [body])
+    grad = MPMEngine(MPMConfig(dim, (cells,) * dim, dx, gravity, requires_grad=True, grad_substeps=substeps), [body])
     zero = {k: np.zeros_like(v) for k, v in grad.state().items()}
     t = time.perf_counter()
     rec0 = {"state": grad.state(), "dt": dt, "substeps": substeps, "impulse": None}

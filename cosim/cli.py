@@ -79,15 +79,8 @@ def cmd_gradcheck(args) -> int:
     obj = Objective(sim)
     params = obj.initial_params()
     names = [p for p in scene.gradient.params if p in params]
-    scales = {
-        "x0": scene.dx,
-        "v0": 1.0,
-        "impulse": float(max(abs(params["impulse"]).max(), sim.mpm.mass.max())) if "impulse" in params else 1.0,
-        "E": float(params["E"].max()),
-        "nu": 0.1,
-    }
     print(f"gradcheck {scene.name}: {steps} steps x {sim.grad_substeps} substeps, float64, loss {scene.loss.type}")
-    results = check_gradients(obj.evaluate, params, names, scales, args.directions or scene.gradient.directions)
+    results = check_gradients(obj.evaluate, params, names, obj.natural_scales(), args.directions or scene.gradient.directions)
     print(f"{'param':>8} {'dir':>4} {'adjoint':>16} {'finite diff':>16} {'rel error':>10}")
     for r in results:
         print(f"{r.param:>8} {r.direction:>4} {r.adjoint:>16.9e} {r.finite_difference:>16.9e} {r.relative_error:>10.2e}")
@@ -96,6 +89,49 @@ def cmd_gradcheck(args) -> int:
     print(f"max relative error: {worst:.3e} (tolerance {tol:g})")
     if worst > tol:
         raise GradientCheckError(f"adjoint and finite differences disagree: {worst:.3e} > {tol:g}")
+    return 0
+
+
+def cmd_optimize(args) -> int:
+    import json
+    import time
+
+    import numpy as np
+
+    from cosim.adjoint.objective import Objective
+    from cosim.adjoint.optimize import PARAM_BOUNDS, adam
+    from cosim.errors import SceneError
+    from cosim.run import Recorder
+    from cosim.simulation import Simulation
+
+    scene = _load(args, precision="float64")
+    spec = scene.optimize
+    sim = Simulation(scene, requires_grad=True, steps=args.steps)
+    obj = Objective(sim)
+    params = obj.initial_params()
+    names = [p for p in spec.params if p in params]
+    if not names:
+        raise SceneError(f"optimize.params: none of {spec.params} exists in this scene (impulse needs controls)")
+    iterations = args.iters or spec.iterations
+    lr = args.lr or spec.learning_rate
+    out = Path(args.out or f"out/{scene.name}_optimize")
+    out.mkdir(parents=True, exist_ok=True)
+    print(f"optimize {scene.name}: {', '.join(names)}; loss {scene.loss.type}; {sim.steps} steps; Adam lr {lr:g} x scale")
+    t0 = time.perf_counter()
+    result = adam(
+        obj.evaluate, params, names, obj.natural_scales(), iterations, lr, PARAM_BOUNDS,
+        callback=lambda it, loss: print(f"  iteration {it:4d}  loss {loss:.6e}", flush=True),
+    )
+    wall = time.perf_counter() - t0
+    print(f"loss {result.losses[0]:.6e} -> {result.best_loss:.6e} in {iterations} iterations ({wall:.1f} s)")
+    np.savez(out / "params.npz", **result.params)
+    (out / "optimization.json").write_text(
+        json.dumps({"params": names, "losses": result.losses, "best_loss": result.best_loss, "wall_time_s": wall}, indent=2)
+    )
+    recorder = Recorder(sim)
+    obj.rollout(result.params, on_step=lambda n: recorder(n) if n == 0 or recorder.wants(n) else None)
+    preview = recorder.write(out)
+    print(f"wrote {out}/params.npz, {out}/optimization.json, {out}/trajectory.npz" + (f", {out}/{preview}" if preview else ""))
     return 0
 
 
@@ -143,6 +179,14 @@ def make_parser() -> argparse.ArgumentParser:
     g.add_argument("--directions", type=int, help="random directions per parameter")
     g.add_argument("--tolerance", type=float, help="largest relative error accepted")
     g.set_defaults(func=cmd_gradcheck)
+
+    o = sub.add_parser("optimize", help="minimise the scene's loss over its inputs with the adjoint gradient")
+    o.add_argument("scene")
+    o.add_argument("--iters", type=int, help="iterations (default: optimize.iterations)")
+    o.add_argument("--lr", type=float, help="learning rate, a fraction of each parameter's scale")
+    o.add_argument("--steps", type=int, help="macro steps of the rollout (default: the scene's)")
+    o.add_argument("--out", help="output folder (default: out/SCENE_optimize)")
+    o.set_defaults(func=cmd_optimize)
 
     b = sub.add_parser("bench", help="benchmarks: throughput, backward/forward ratio, memory")
     b.add_argument("what", choices=["mpm"])

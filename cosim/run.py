@@ -34,6 +34,54 @@ def hardware_line() -> str:
     return f"{cpu}, {os.cpu_count()} cores{mem}, Python {platform.python_version()}"
 
 
+class Recorder:
+    """Collects saved frames (positions per body, energies) of one rollout."""
+
+    def __init__(self, sim):
+        self.sim = sim
+        self.frames: list[list[np.ndarray]] = []
+        self.times: list[float] = []
+        self.energy: list[dict] = []
+
+    def __call__(self, step_index: int) -> None:
+        from cosim.diagnostics import energies
+
+        state = self.sim.mpm.state()
+        self.frames.append([state["x"][sl].copy() for sl in self.sim.slices.values()])
+        self.times.append(step_index * self.sim.frame_dt)
+        self.energy.append(energies(self.sim.mpm, state, self.sim.scene.gravity))
+
+    def wants(self, step_index: int) -> bool:
+        """Save after macro step ``step_index`` (1-based)? Every output.every, and the last."""
+        return step_index % self.sim.scene.output.every == 0 or step_index == self.sim.steps
+
+    def write(self, out_dir: Path, preview: bool = True) -> str | None:
+        """trajectory.npz (docs/outputs.md) and the preview; returns the preview's file name."""
+        scene = self.sim.scene
+        names = list(self.sim.slices)
+        arrays = {"time": np.asarray(self.times), "body_names": np.asarray(names)}
+        for i, name in enumerate(names):
+            arrays[f"x_{name}"] = np.stack([f[i] for f in self.frames]).astype(np.float32)
+        for key in ("kinetic", "gravity", "strain", "total"):
+            arrays[f"energy_{key}"] = np.asarray([e[key] for e in self.energy])
+        np.savez_compressed(out_dir / "trajectory.npz", **arrays)
+        if not preview or scene.output.preview == "none":
+            return None
+        from cosim.render import write_preview
+
+        spacing = min(b.spacing or 0.5 * scene.dx for b in scene.mpm.bodies)
+        path = write_preview(
+            out_dir / f"preview.{scene.output.preview}",
+            self.frames,
+            np.asarray(self.times),
+            np.asarray(scene.cells) * scene.dx,
+            spacing,
+            scene.output.resolution,
+            scene.output.fps,
+        )
+        return path.name
+
+
 def run_scene(scene: Scene, out_dir: Path, steps: int | None = None, progress: bool = True, preview: bool = True) -> dict:
     """Run ``scene`` for ``steps`` macro steps and write the outputs to ``out_dir``.
 
@@ -42,7 +90,6 @@ def run_scene(scene: Scene, out_dir: Path, steps: int | None = None, progress: b
     """
     from tqdm import tqdm
 
-    from cosim.diagnostics import energies
     from cosim.simulation import Simulation
 
     out_dir = Path(out_dir)
@@ -50,32 +97,17 @@ def run_scene(scene: Scene, out_dir: Path, steps: int | None = None, progress: b
     t_build = time.perf_counter()
     sim = Simulation(scene, requires_grad=False, steps=steps)
     build_s = time.perf_counter() - t_build
-    names = list(sim.slices)
     actions = sim.default_actions()
-    frames, times, energy = [], [], []
-
-    def save_frame() -> None:
-        state = sim.mpm.state()
-        frames.append([state["x"][sl].copy() for sl in sim.slices.values()])
-        times.append(sim.step_index * sim.frame_dt)
-        energy.append(energies(sim.mpm, state, scene.gravity))
-
-    save_frame()
+    recorder = Recorder(sim)
+    recorder(0)
     substeps = []
     t0 = time.perf_counter()
     for n in tqdm(range(sim.steps), desc=scene.name, unit="step", disable=not progress, leave=False):
         info = sim.step(sim.impulse_field(actions, n))
         substeps.append(info.substeps)
-        if (n + 1) % scene.output.every == 0 or n + 1 == sim.steps:
-            save_frame()
+        if recorder.wants(n + 1):
+            recorder(n + 1)
     wall = time.perf_counter() - t0
-
-    arrays = {"time": np.asarray(times), "body_names": np.asarray(names)}
-    for i, name in enumerate(names):
-        arrays[f"x_{name}"] = np.stack([f[i] for f in frames]).astype(np.float32)
-    for key in ("kinetic", "gravity", "strain", "total"):
-        arrays[f"energy_{key}"] = np.asarray([e[key] for e in energy])
-    np.savez_compressed(out_dir / "trajectory.npz", **arrays)
 
     metrics = {
         "scene": scene.name,
@@ -93,22 +125,11 @@ def run_scene(scene: Scene, out_dir: Path, steps: int | None = None, progress: b
         "wall_time_s": wall,
         "build_time_s": build_s,
         "particle_substeps_per_s": sim.mpm.n_particles * sum(substeps) / max(wall, 1e-12),
-        "energy_initial": energy[0],
-        "energy_final": energy[-1],
+        "energy_initial": recorder.energy[0],
+        "energy_final": recorder.energy[-1],
     }
-    if preview and scene.output.preview != "none":
-        from cosim.render import write_preview
-
-        spacing = min(b.spacing or 0.5 * scene.dx for b in scene.mpm.bodies)
-        path = write_preview(
-            out_dir / f"preview.{scene.output.preview}",
-            frames,
-            np.asarray(times),
-            np.asarray(scene.cells) * scene.dx,
-            spacing,
-            scene.output.resolution,
-            scene.output.fps,
-        )
-        metrics["preview"] = path.name
+    name = recorder.write(out_dir, preview)
+    if name:
+        metrics["preview"] = name
     (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
     return metrics

@@ -177,6 +177,14 @@ class GradientSpec(Strict):
     directions: Annotated[int, Field(ge=1, le=64)] = 3
 
 
+class OptimizeSpec(Strict):
+    """`cosim optimize`: Adam on the loss's adjoint gradient."""
+
+    params: list[Literal["x0", "v0", "impulse", "E", "nu"]] = ["impulse"]
+    iterations: Annotated[int, Field(ge=1, le=100000)] = 30
+    learning_rate: Positive = 0.05  # a fraction of each parameter's natural scale per step
+
+
 class OutputSpec(Strict):
     every: Annotated[int, Field(ge=1)] = 1  # save a frame every N macro steps
     preview: Literal["gif", "mp4", "none"] = "gif"
@@ -197,6 +205,7 @@ class Scene(Strict):
     controls: list[ControlSpec] = []
     loss: LossSpec = LossSpec()
     gradient: GradientSpec = GradientSpec()
+    optimize: OptimizeSpec = OptimizeSpec()
     output: OutputSpec = OutputSpec()
 
     # Set by the loader, not by the YAML file.
@@ -376,6 +385,8 @@ def _semantic_problems(scene: Scene) -> list[str]:
     vec("loss.target", loss.target)
     if "impulse" in scene.gradient.params and not scene.controls and "gradient" in scene.model_fields_set:
         problems.append("gradient.params: 'impulse' needs at least one entry under controls")
+    if "impulse" in scene.optimize.params and not scene.controls and "optimize" in scene.model_fields_set:
+        problems.append("optimize.params: 'impulse' needs at least one entry under controls")
     if scene.steps * scene.time.frame_dt > 1e4 or not math.isfinite(scene.time.frame_dt):
         problems.append("time.frame_dt: steps * frame_dt exceeds 10^4 s; is frame_dt in seconds?")
     return problems

@@ -150,7 +150,7 @@ class Simulation:
             wall=scene.mpm.boundary.type,
             wall_cells=scene.mpm.boundary.thickness,
             requires_grad=requires_grad,
-            max_substeps=self.grad_substeps if requires_grad else 1,
+            grad_substeps=self.grad_substeps if requires_grad else 1,
             has_controls=bool(scene.controls),
         )
         self.mpm = MPMEngine(cfg, bodies)
@@ -199,10 +199,15 @@ class Simulation:
             if cfl <= self.scene.time.cfl:
                 break
             if fixed or attempt == RETRIES:
+                if self.scene.time.substeps:
+                    fix = "raise time.substeps or set it to 'auto'"
+                elif fixed:
+                    fix = f"gradient runs fix the substeps at the start ({K} here); set time.substeps higher"
+                else:
+                    fix = "the motion is too violent for time.max_substeps"
                 raise SimulationError(
                     f"step {self.step_index}: CFL number {cfl:.3f} > {self.scene.time.cfl} in body '{body}' "
-                    f"(max |v| dt / dx with dt = {self.frame_dt / K:.3g} s); "
-                    + ("raise time.substeps or set it to 'auto'" if fixed else "the motion is too violent")
+                    f"(max |v| dt / dx with dt = {self.frame_dt / K:.3g} s); {fix}"
                 )
             self.mpm.set_state(state)
             K *= 2

@@ -45,20 +45,34 @@ class Objective:
         np.add.at(full, self.ctrl_index, impulse[n])
         return full
 
-    def rollout(self, params: dict[str, np.ndarray], record: bool = False) -> dict[str, np.ndarray]:
-        """Run all macro steps from ``params``; returns the final state."""
+    def natural_scales(self) -> dict[str, float]:
+        """Each parameter's natural size: finite-difference steps and optimizer steps are fractions of it."""
+        p = self.initial_params()
+        impulse = float(max(np.abs(p["impulse"]).max(), self.sim.mpm.mass.max() * 0.1)) if "impulse" in p else 1.0
+        return {"x0": self.sim.dx, "v0": 1.0, "impulse": impulse, "E": float(p["E"].max()), "nu": 0.1}
+
+    def rollout(self, params: dict[str, np.ndarray], record: bool = False, on_step=None) -> dict[str, np.ndarray]:
+        """Run all macro steps from ``params``; returns the final state.
+
+        ``record`` fills the tape; ``on_step(n)`` is called with the state of
+        macro step n in the engine (n = 0: the initial state).
+        """
         sim = self.sim
         s0 = dict(self.initial_state, x=params["x0"], v=params["v0"])
         sim.mpm.set_state(s0)
         sim.mpm.set_params(E=params.get("E", self.initial_material["E"]), nu=params.get("nu", self.initial_material["nu"]))
         sim.step_index = 0
         self.tape.clear()
+        if on_step is not None:
+            on_step(0)
         for n in range(sim.steps):
             imp = self._impulse_field(params.get("impulse"), n)
             before = sim.mpm.state() if record else None
             info = sim.step(imp)
             if record:
                 self.tape.push(StepRecord(before, info.dt, info.substeps, imp, info.token))
+            if on_step is not None:
+                on_step(n + 1)
         return sim.mpm.state()
 
     def evaluate(self, params: dict[str, np.ndarray], grad: bool = False):

@@ -69,7 +69,7 @@ class MPMConfig:
     wall: str = "slip"  # 'slip' | 'sticky' | 'none'
     wall_cells: int = 3
     requires_grad: bool = False
-    max_substeps: int = 1  # slots for autodiff: substeps per macro step (grad mode)
+    grad_substeps: int = 1  # gradient mode: substeps per macro step (slots = this + 1)
     has_controls: bool = False
     serial_p2g: bool = True  # single-threaded non-atomic scatter (faster on CPUs)
 
@@ -101,7 +101,7 @@ class MPMEngine:
         self.ranges = [(int(starts[i]), int(starts[i + 1])) for i in range(len(bodies))]
         self.materials = [MATERIALS[b.material]() for b in bodies]
         grad = config.requires_grad
-        self.n_slots = config.max_substeps + 1 if grad else 2
+        self.n_slots = config.grad_substeps + 1 if grad else 2
 
         self.x = ti.Vector.field(d, float, shape=(self.n_slots, n), needs_grad=grad)
         self.v = ti.Vector.field(d, float, shape=(self.n_slots, n), needs_grad=grad)
@@ -379,8 +379,8 @@ class MPMEngine:
         self._set_control(impulse)
         share = 1.0 / substeps
         if self.cfg.requires_grad:
-            if substeps > self.cfg.max_substeps:
-                raise ValueError(f"{substeps} substeps exceed the {self.cfg.max_substeps} slots built for gradients")
+            if substeps > self.cfg.grad_substeps:
+                raise ValueError(f"{substeps} substeps exceed the {self.cfg.grad_substeps} built for gradients")
             if self._slot != 0:
                 self._copy_slot(self._slot, 0)
             for s in range(substeps):
