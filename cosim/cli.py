@@ -146,9 +146,17 @@ def cmd_render(args) -> int:
 
     from cosim.render import write_preview
 
+    from cosim.errors import InputError
+
     scene = _load(args)
-    traj = np.load(Path(args.trajectory), allow_pickle=False)
-    names = [str(n) for n in traj["body_names"]]
+    path = Path(args.trajectory)
+    if not path.is_file():
+        raise InputError(f"trajectory file not found: {path}; `cosim run` writes one as OUT/trajectory.npz")
+    traj = np.load(path, allow_pickle=False)
+    names = [str(n) for n in traj["body_names"]] if "body_names" in traj else []
+    missing = [f"x_{n}" for n in names if f"x_{n}" not in traj] if names else ["body_names"]
+    if missing:
+        raise InputError(f"{path}: not a cosim trajectory (missing {', '.join(missing)})")
     frames = [[traj[f"x_{n}"][i] for n in names] for i in range(len(traj["time"]))]
     spacing = min(b.spacing or 0.5 * scene.dx for b in scene.mpm.bodies)
     path = write_preview(
@@ -158,6 +166,26 @@ def cmd_render(args) -> int:
     return 0
 
 
+def positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
+    return value
+
+
+def positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {value}")
+    return value
+
+
 def make_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="cosim", description="Differentiable MPM co-simulation for soft-body manipulation.")
     sub = p.add_subparsers(dest="command", required=True)
@@ -165,7 +193,7 @@ def make_parser() -> argparse.ArgumentParser:
     r = sub.add_parser("run", help="run a scene and write trajectory, metrics and a preview")
     r.add_argument("scene", nargs="?", help=f"scene file or shipped scene name (default: {DEFAULT_SCENE})")
     r.add_argument("--out", help="output folder (default: out/SCENE_NAME)")
-    r.add_argument("--steps", type=int, help="macro steps (default: the scene's)")
+    r.add_argument("--steps", type=positive_int, help="macro steps (default: the scene's)")
     r.add_argument("--quiet", action="store_true", help="no progress bar")
     r.set_defaults(func=cmd_run)
 
@@ -175,16 +203,16 @@ def make_parser() -> argparse.ArgumentParser:
 
     g = sub.add_parser("gradcheck", help="adjoint vs central finite differences (float64)")
     g.add_argument("scene")
-    g.add_argument("--steps", type=int, help="macro steps (default: min(scene steps, 5))")
-    g.add_argument("--directions", type=int, help="random directions per parameter")
-    g.add_argument("--tolerance", type=float, help="largest relative error accepted")
+    g.add_argument("--steps", type=positive_int, help="macro steps (default: min(scene steps, 5))")
+    g.add_argument("--directions", type=positive_int, help="random directions per parameter")
+    g.add_argument("--tolerance", type=positive_float, help="largest relative error accepted")
     g.set_defaults(func=cmd_gradcheck)
 
     o = sub.add_parser("optimize", help="minimise the scene's loss over its inputs with the adjoint gradient")
     o.add_argument("scene")
-    o.add_argument("--iters", type=int, help="iterations (default: optimize.iterations)")
-    o.add_argument("--lr", type=float, help="learning rate, a fraction of each parameter's scale")
-    o.add_argument("--steps", type=int, help="macro steps of the rollout (default: the scene's)")
+    o.add_argument("--iters", type=positive_int, help="iterations (default: optimize.iterations)")
+    o.add_argument("--lr", type=positive_float, help="learning rate, a fraction of each parameter's scale")
+    o.add_argument("--steps", type=positive_int, help="macro steps of the rollout (default: the scene's)")
     o.add_argument("--out", help="output folder (default: out/SCENE_optimize)")
     o.set_defaults(func=cmd_optimize)
 

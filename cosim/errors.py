@@ -15,6 +15,12 @@ class SceneError(CosimError):
     exit_code = 2
 
 
+class InputError(CosimError):
+    """A file given on the command line is missing or not what it should be."""
+
+    exit_code = 2
+
+
 class SimulationError(CosimError):
     """The simulation became invalid: CFL violated, NaN/inf, a particle left the domain."""
 

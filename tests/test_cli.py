@@ -92,3 +92,12 @@ def test_unstable_run_exits_3_with_message(tmp_path):
     path.write_text(yaml.safe_dump(data))
     res = run_cli("run", str(path), "--out", str(tmp_path / "o"), "--quiet")
     assert res.returncode == 3 and "CFL number" in res.stderr and "Traceback" not in res.stderr
+
+
+def test_render_rerenders_a_trajectory_and_rejects_a_missing_one(tmp_path):
+    res = run_cli("run", "--steps", "3", "--out", str(tmp_path), "--quiet")
+    assert res.returncode == 0, res.stderr
+    ok = run_cli("render", "elastic_bounce_2d", str(tmp_path / "trajectory.npz"), str(tmp_path / "again.gif"))
+    assert ok.returncode == 0 and (tmp_path / "again.gif").stat().st_size > 1000
+    bad = run_cli("render", "elastic_bounce_2d", str(tmp_path / "nope.npz"), str(tmp_path / "x.gif"))
+    assert bad.returncode == 2 and "trajectory file not found" in bad.stderr and "Traceback" not in bad.stderr

@@ -7,6 +7,8 @@ from typing import Callable
 
 import numpy as np
 
+from cosim.errors import SimulationError
+
 
 @dataclass
 class OptimizeResult:
@@ -47,7 +49,10 @@ def adam(
         for k in names:
             g = grads[k]
             if not np.all(np.isfinite(g)):
-                raise FloatingPointError(f"the gradient of '{k}' is not finite at iteration {it}")
+                raise SimulationError(
+                    f"optimize: the gradient of '{k}' is not finite at iteration {it}; "
+                    "lower optimize.learning_rate or check the scene's stability"
+                )
             m[k] = beta1 * m[k] + (1 - beta1) * g
             v[k] = beta2 * v[k] + (1 - beta2) * g * g
             m_hat = m[k] / (1 - beta1 ** (it + 1))

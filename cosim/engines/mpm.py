@@ -225,14 +225,16 @@ class MPMEngine:
                 self.grid_m[I] = 0.0
 
     @ti.kernel
-    def _g2p(self, mat: ti.template(), serial: ti.template(), b: ti.i32, start: ti.i32, end: ti.i32, src: ti.i32, dst: ti.i32, dt: float):
-        """Gather, advect, update F. A parallel gather; its adjoint scatters, so it runs with ``serial=True``."""
+    def _g2p(self, serial: ti.template(), src: ti.i32, dst: ti.i32):
+        """Gather velocity and affine field from the grid into slot ``dst``.
+
+        A parallel gather; its adjoint scatters onto the grid, so it runs with
+        ``serial=True`` (non-atomic adds), while the costly per-particle update
+        below keeps a parallel adjoint.
+        """
         ti.loop_config(serialize=serial)
-        for p in range(start, end):
-            mu, lam = self._lame(b)
-            ys = self.yield_stress[b]
-            xp = self.x[src, p]
-            base, fx, w = self._stencil(xp)
+        for p in range(self.n_particles):
+            base, fx, w = self._stencil(self.x[src, p])
             new_v = ti.Vector.zero(float, self.dim)
             new_C = ti.Matrix.zero(float, self.dim, self.dim)
             for offset in ti.static(ti.grouped(ti.ndrange(*([3] * self.dim)))):
@@ -245,9 +247,15 @@ class MPMEngine:
                 new_C += (4.0 * self.inv_dx * weight) * g_v.outer_product(dpos)
             self.v[dst, p] = new_v
             self.C[dst, p] = new_C
-            self.x[dst, p] = xp + dt * new_v
-            F_trial = (ti.Matrix.identity(float, self.dim) + dt * new_C) @ self.F[src, p]
-            self.F[dst, p] = mat.project(F_trial, mu, lam, ys)
+
+    @ti.kernel
+    def _advect(self, mat: ti.template(), b: ti.i32, start: ti.i32, end: ti.i32, src: ti.i32, dst: ti.i32, dt: float):
+        """Move particles and update F with the material's return mapping (per body, parallel)."""
+        for p in range(start, end):
+            mu, lam = self._lame(b)
+            self.x[dst, p] = self.x[src, p] + dt * self.v[dst, p]
+            F_trial = (ti.Matrix.identity(float, self.dim) + dt * self.C[dst, p]) @ self.F[src, p]
+            self.F[dst, p] = mat.project(F_trial, mu, lam, self.yield_stress[b])
 
     @ti.kernel
     def _copy_slot(self, src: ti.i32, dst: ti.i32):
@@ -310,9 +318,10 @@ class MPMEngine:
         self._grid_update(dt, self._mass_floor())
 
     def post_coupling(self, src: int, dst: int, dt: float) -> None:
-        """Gather from the grid, advect and update deformation (G2P)."""
+        """Gather from the grid (G2P), advect and update deformation per body."""
+        self._g2p(False, src, dst)
         for b, (mat, (lo, hi)) in enumerate(zip(self.materials, self.ranges)):
-            self._g2p(mat, False, b, lo, hi, src, dst, dt)
+            self._advect(mat, b, lo, hi, src, dst, dt)
 
     def _substep(self, src: int, dst: int, dt: float, control_share: float) -> None:
         self.pre_coupling(src, dt, control_share)
@@ -332,7 +341,8 @@ class MPMEngine:
         self.affine.grad.fill(0)
         for b in reversed(range(len(self.bodies))):
             lo, hi = self.ranges[b]
-            self._g2p.grad(self.materials[b], self._serial, b, lo, hi, src, dst, dt)
+            self._advect.grad(self.materials[b], b, lo, hi, src, dst, dt)
+        self._g2p.grad(self._serial, src, dst)
         self._grid_update.grad(dt, self._mass_floor())
         for b in reversed(range(len(self.bodies))):
             lo, hi = self.ranges[b]
