@@ -5,11 +5,12 @@ affine momentum. Units are SI: positions [m], velocities [m/s], masses [kg],
 stresses [Pa], impulses [N s]. The domain is the box [0, cells * dx]^d.
 
 Particle state lives in *slots*: ``x[slot, p]`` etc. A forward-only engine
-uses two slots (ping-pong). An engine built with ``requires_grad`` keeps
-``substeps + 1`` slots, so one macro step's substep states are all resident
-for Taichi's reverse-mode autodiff; states between macro steps are kept by the
-tape on the host (checkpoints), and ``vjp`` recomputes the substeps of the
-step it differentiates. Memory is O(S N + K N), never O(S K N).
+uses two slots (ping-pong) and one grid. An engine built with ``requires_grad``
+keeps ``substeps + 1`` slots and one grid (and stress scratch) per substep, so
+one macro step is all resident for Taichi's reverse-mode autodiff and the
+adjoint never re-runs P2G; states between macro steps are kept by the tape on
+the host (checkpoints), and ``vjp`` recomputes the substeps of the step it
+differentiates. Memory is O(S N + K (N + grid)), never O(S K N).
 
 One substep, split into the phases a coupler drives (see DESIGN.md):
 
@@ -114,12 +115,16 @@ class MPMEngine:
         self.viscosity = ti.field(float, shape=nb)
         self.p_mass = ti.field(float, shape=nb)
         self.p_vol = ti.field(float, shape=nb)
-        nodes = tuple(int(c) + 1 for c in config.cells)  # nodes at 0, dx, ..., cells * dx
-        self.grid_mom = ti.Vector.field(d, float, shape=nodes, needs_grad=grad)
-        self.grid_m = ti.field(float, shape=nodes, needs_grad=grad)
-        self.grid_v = ti.Vector.field(d, float, shape=nodes, needs_grad=grad)
+        # Grid and per-particle stress scratch: one copy per substep with
+        # gradients (the adjoint reads them back instead of recomputing P2G),
+        # one copy otherwise. g below is that copy's index.
+        self.nodes = tuple(int(c) + 1 for c in config.cells)  # nodes at 0, dx, ..., cells * dx
+        self.n_grids = config.grad_substeps if grad else 1
+        self.grid_mom = ti.Vector.field(d, float, shape=(self.n_grids, *self.nodes), needs_grad=grad)
+        self.grid_m = ti.field(float, shape=(self.n_grids, *self.nodes), needs_grad=grad)
+        self.grid_v = ti.Vector.field(d, float, shape=(self.n_grids, *self.nodes), needs_grad=grad)
         self.gravity = ti.Vector([float(g) for g in config.gravity])
-        self.affine = ti.Matrix.field(d, d, float, shape=n, needs_grad=grad)
+        self.affine = ti.Matrix.field(d, d, float, shape=(self.n_grids, n), needs_grad=grad)
         self.control = None
         if config.has_controls:
             self.control = ti.Vector.field(d, float, shape=n, needs_grad=grad)
@@ -154,7 +159,7 @@ class MPMEngine:
     @ti.func
     def _stencil(self, xp):
         """Base node, fractional position and quadratic B-spline weights."""
-        lim = ti.Vector(self.grid_m.shape) - 3
+        lim = ti.Vector(self.nodes) - 3
         base = ti.max(ti.min(ti.cast(xp * self.inv_dx - 0.5, ti.i32), lim), 0)
         fx = xp * self.inv_dx - ti.cast(base, float)
         w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
@@ -166,30 +171,30 @@ class MPMEngine:
         return E / (2.0 * (1.0 + nu)), E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
 
     @ti.kernel
-    def _clear_grid(self):
-        for I in ti.grouped(self.grid_m):
-            self.grid_mom[I] = ti.Vector.zero(float, self.dim)
-            self.grid_m[I] = 0.0
-            self.grid_v[I] = ti.Vector.zero(float, self.dim)
+    def _clear_grid(self, g: ti.i32):
+        for I in ti.grouped(ti.ndrange(*self.nodes)):
+            self.grid_mom[g, I] = ti.Vector.zero(float, self.dim)
+            self.grid_m[g, I] = 0.0
+            self.grid_v[g, I] = ti.Vector.zero(float, self.dim)
 
     @ti.kernel
-    def _stress(self, mat: ti.template(), b: ti.i32, start: ti.i32, end: ti.i32, src: ti.i32, dt: float):
+    def _stress(self, mat: ti.template(), b: ti.i32, start: ti.i32, end: ti.i32, src: ti.i32, g: ti.i32, dt: float):
         """Affine momentum per particle: stress term plus APIC m C (parallel)."""
         for p in range(start, end):
             mu, lam = self._lame(b)
             m_p, vol = self.p_mass[b], self.p_vol[b]
             tau = mat.kirchhoff(self.F[src, p], self.C[src, p], mu, lam, self.viscosity[b])
-            self.affine[p] = (-dt * vol * 4.0 * self.inv_dx * self.inv_dx) * tau + m_p * self.C[src, p]
+            self.affine[g, p] = (-dt * vol * 4.0 * self.inv_dx * self.inv_dx) * tau + m_p * self.C[src, p]
 
     @ti.kernel
-    def _p2g(self, serial: ti.template(), b: ti.i32, start: ti.i32, end: ti.i32, src: ti.i32, control_share: float):
+    def _p2g(self, serial: ti.template(), b: ti.i32, start: ti.i32, end: ti.i32, src: ti.i32, g: ti.i32, control_share: float):
         """Scatter mass and momentum. ``serial``: one thread, non-atomic adds (faster than
         atomics on CPUs); its adjoint is a gather and runs with ``serial=False``."""
         ti.loop_config(serialize=serial)
         for p in range(start, end):
             m_p = self.p_mass[b]
             base, fx, w = self._stencil(self.x[src, p])
-            affine = self.affine[p]
+            affine = self.affine[g, p]
             mom = m_p * self.v[src, p]
             if ti.static(self.cfg.has_controls):
                 mom += control_share * self.control[p]
@@ -198,34 +203,34 @@ class MPMEngine:
                 weight = 1.0
                 for k in ti.static(range(self.dim)):
                     weight *= w[offset[k]][k]
-                self.grid_mom[base + offset] += weight * (mom + affine @ dpos)
-                self.grid_m[base + offset] += weight * m_p
+                self.grid_mom[g, base + offset] += weight * (mom + affine @ dpos)
+                self.grid_m[g, base + offset] += weight * m_p
 
     @ti.kernel
-    def _grid_update(self, dt: float, mass_floor: float):
-        for I in ti.grouped(self.grid_m):
-            m = self.grid_m[I]
+    def _grid_update(self, g: ti.i32, dt: float, mass_floor: float):
+        for I in ti.grouped(ti.ndrange(*self.nodes)):
+            m = self.grid_m[g, I]
             vel = ti.Vector.zero(float, self.dim)
             if m > mass_floor:
-                vel = self.grid_mom[I] / m + dt * self.gravity
+                vel = self.grid_mom[g, I] / m + dt * self.gravity
                 if ti.static(self.cfg.wall != "none"):
                     for k in ti.static(range(self.dim)):
                         low = I[k] < self.cfg.wall_cells and vel[k] < 0
-                        high = I[k] > self.grid_m.shape[k] - 1 - self.cfg.wall_cells and vel[k] > 0
+                        high = I[k] > self.nodes[k] - 1 - self.cfg.wall_cells and vel[k] > 0
                         if low or high:
                             if ti.static(self.cfg.wall == "sticky"):
                                 vel = ti.Vector.zero(float, self.dim)
                             else:
                                 vel[k] = 0.0
-            self.grid_v[I] = vel
+            self.grid_v[g, I] = vel
             if ti.static(not self.cfg.requires_grad):
                 # forward-only: leave the grid cleared for the next P2G (saves a pass);
-                # with gradients the backward pass still needs these values
-                self.grid_mom[I] = ti.Vector.zero(float, self.dim)
-                self.grid_m[I] = 0.0
+                # with gradients the backward pass reads these values back
+                self.grid_mom[g, I] = ti.Vector.zero(float, self.dim)
+                self.grid_m[g, I] = 0.0
 
     @ti.kernel
-    def _g2p(self, serial: ti.template(), src: ti.i32, dst: ti.i32):
+    def _g2p(self, serial: ti.template(), src: ti.i32, dst: ti.i32, g: ti.i32):
         """Gather velocity and affine field from the grid into slot ``dst``.
 
         A parallel gather; its adjoint scatters onto the grid, so it runs with
@@ -242,9 +247,9 @@ class MPMEngine:
                 weight = 1.0
                 for k in ti.static(range(self.dim)):
                     weight *= w[offset[k]][k]
-                g_v = self.grid_v[base + offset]
-                new_v += weight * g_v
-                new_C += (4.0 * self.inv_dx * weight) * g_v.outer_product(dpos)
+                node_v = self.grid_v[g, base + offset]
+                new_v += weight * node_v
+                new_C += (4.0 * self.inv_dx * weight) * node_v.outer_product(dpos)
             self.v[dst, p] = new_v
             self.C[dst, p] = new_C
 
@@ -305,49 +310,45 @@ class MPMEngine:
             return 0.0
         return 1e-8 * float(min(b.particle_mass for b in self.bodies))
 
+    def _grid_index(self, src: int) -> int:
+        """The grid copy substep ``src`` uses: its own with gradients, the only one otherwise."""
+        return src if self.cfg.requires_grad else 0
+
     def pre_coupling(self, src: int, dt: float, control_share: float = 0.0) -> None:
         """Clear the grid and scatter every body onto it (P2G)."""
+        g = self._grid_index(src)
         if self.cfg.requires_grad:  # forward-only engines clear it in grid_update
-            self._clear_grid()
+            self._clear_grid(g)
         for b, (mat, (lo, hi)) in enumerate(zip(self.materials, self.ranges)):
-            self._stress(mat, b, lo, hi, src, dt)
-            self._p2g(self._serial, b, lo, hi, src, control_share)
+            self._stress(mat, b, lo, hi, src, g, dt)
+            self._p2g(self._serial, b, lo, hi, src, g, control_share)
 
-    def coupling(self, dt: float) -> None:
+    def coupling(self, src: int, dt: float) -> None:
         """Grid update: velocities, gravity, walls. Contact models hook in here."""
-        self._grid_update(dt, self._mass_floor())
+        self._grid_update(self._grid_index(src), dt, self._mass_floor())
 
     def post_coupling(self, src: int, dst: int, dt: float) -> None:
         """Gather from the grid (G2P), advect and update deformation per body."""
-        self._g2p(False, src, dst)
+        self._g2p(False, src, dst, self._grid_index(src))
         for b, (mat, (lo, hi)) in enumerate(zip(self.materials, self.ranges)):
             self._advect(mat, b, lo, hi, src, dst, dt)
 
     def _substep(self, src: int, dst: int, dt: float, control_share: float) -> None:
         self.pre_coupling(src, dt, control_share)
-        self.coupling(dt)
+        self.coupling(src, dt)
         self.post_coupling(src, dst, dt)
 
-    def _substep_grad(self, src: int, dst: int, dt: float, control_share: float) -> None:
-        """Adjoint of one substep: recompute its grid (scratch), then reverse it.
-
-        G2P's outputs already sit in slot ``dst``; only the scratch (affine
-        stress, grid) written before it is recomputed."""
-        self.pre_coupling(src, dt, control_share)
-        self.coupling(dt)
-        self.grid_mom.grad.fill(0)
-        self.grid_m.grad.fill(0)
-        self.grid_v.grad.fill(0)
-        self.affine.grad.fill(0)
+    def _substep_grad(self, s: int, dt: float, control_share: float) -> None:
+        """Adjoint of substep s (slots s -> s + 1); its grid and stress copies are still held."""
         for b in reversed(range(len(self.bodies))):
             lo, hi = self.ranges[b]
-            self._advect.grad(self.materials[b], b, lo, hi, src, dst, dt)
-        self._g2p.grad(self._serial, src, dst)
-        self._grid_update.grad(dt, self._mass_floor())
+            self._advect.grad(self.materials[b], b, lo, hi, s, s + 1, dt)
+        self._g2p.grad(self._serial, s, s + 1, s)
+        self._grid_update.grad(s, dt, self._mass_floor())
         for b in reversed(range(len(self.bodies))):
             lo, hi = self.ranges[b]
-            self._p2g.grad(False, b, lo, hi, src, control_share)
-            self._stress.grad(self.materials[b], b, lo, hi, src, dt)
+            self._p2g.grad(False, b, lo, hi, s, s, control_share)
+            self._stress.grad(self.materials[b], b, lo, hi, s, s, dt)
 
     # ------------------------------------------------------------ the contract
     def state(self) -> dict[str, np.ndarray]:
@@ -423,8 +424,8 @@ class MPMEngine:
             for s in range(K):
                 self._substep(s, s + 1, dt, share)
             self._slot = K
-        for k in STATE_KEYS:
-            getattr(self, k).grad.fill(0)
+        for fld in (self.x, self.v, self.C, self.F, self.grid_mom, self.grid_m, self.grid_v, self.affine):
+            fld.grad.fill(0)
         self.E.grad.fill(0)
         self.nu.grad.fill(0)
         if self.control is not None:
@@ -432,7 +433,7 @@ class MPMEngine:
         for k in STATE_KEYS:
             self._put(getattr(self, k).grad, K, grad_state[k])
         for s in reversed(range(K)):
-            self._substep_grad(s, s + 1, dt, share)
+            self._substep_grad(s, dt, share)
         self._resident = -1  # the backward recompute overwrote nothing, but be safe
         out = {
             "state": {k: self._get(getattr(self, k).grad, 0) for k in STATE_KEYS},
