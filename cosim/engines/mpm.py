@@ -19,8 +19,8 @@ One substep, split into the phases a coupler drives (see DESIGN.md):
   particle-penalty contact) onto the grid;
 - coupling      ``grid_update``: momentum to velocity, gravity, domain walls
   (the hook for grid / forecast contact on ``grid_v``);
-- post-coupling ``g2p``: gather velocity and affine field, advect, update F
-  and apply the material's return mapping (per material).
+- post-coupling ``g2p``: gather velocity and affine field; ``advect`` (per
+  material): move particles, update F, apply the material's return mapping.
 """
 
 
