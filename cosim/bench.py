@@ -21,7 +21,17 @@ CONFIGS = [
     {"dim": 3, "cells": 64, "side": 31, "precision": "float32"},  # 29,791 particles
     {"dim": 3, "cells": 64, "side": 31, "precision": "float64"},
 ]
-COLUMNS = ["dim", "precision", "grid", "particles", "fwd_Mpss", "fwd_bwd_Mpss", "bwd_fwd_ratio", "peak_MiB", "compile_s"]
+COLUMNS = [
+    "dim",
+    "precision",
+    "grid",
+    "particles",
+    "fwd_Mpss",
+    "fwd_bwd_Mpss",
+    "bwd_fwd_ratio",
+    "peak_MiB",
+    "compile_s",
+]
 
 
 def measure(dim: int, cells: int, side: int, precision: str, substeps: int, macro_steps: int) -> dict:
@@ -111,7 +121,9 @@ def run_bench(what: str, out_dir: Path, quick: bool = False) -> int:
         writer.writeheader()
         writer.writerows(rows)
     print(f"\nMPM benchmark on {hardware_line()}; {substeps} substeps x {macro} macro steps, elastic block, dt 1e-4 s")
-    print(f"{'dim':>3} {'precision':>9} {'grid':>6} {'particles':>9} {'fwd M/s':>8} {'f+b M/s':>8} {'bwd/fwd':>7} {'peak MiB':>8} {'compile s':>9}")
+    print(
+        f"{'dim':>3} {'precision':>9} {'grid':>6} {'particles':>9} {'fwd M/s':>8} {'f+b M/s':>8} {'bwd/fwd':>7} {'peak MiB':>8} {'compile s':>9}"
+    )
     for r in rows:
         print(
             f"{r['dim']:>3} {r['precision']:>9} {r['grid']:>6} {r['particles']:>9} {r['fwd_Mpss']:>8.2f} "

@@ -63,7 +63,9 @@ def cmd_validate(args) -> int:
     scene = _load(args)
     bodies = build_bodies(scene)  # also checks meshes and that bodies fit the grid
     n = sum(b.n for b in bodies)
-    print(f"{args.scene}: valid ({scene.dim}D, {len(bodies)} bodies, {n} particles, grid {scene.cells}, dx {scene.dx:g} m)")
+    print(
+        f"{args.scene}: valid ({scene.dim}D, {len(bodies)} bodies, {n} particles, grid {scene.cells}, dx {scene.dx:g} m)"
+    )
     return 0
 
 
@@ -80,10 +82,14 @@ def cmd_gradcheck(args) -> int:
     params = obj.initial_params()
     names = [p for p in scene.gradient.params if p in params]
     print(f"gradcheck {scene.name}: {steps} steps x {sim.grad_substeps} substeps, float64, loss {scene.loss.type}")
-    results = check_gradients(obj.evaluate, params, names, obj.natural_scales(), args.directions or scene.gradient.directions)
+    results = check_gradients(
+        obj.evaluate, params, names, obj.natural_scales(), args.directions or scene.gradient.directions
+    )
     print(f"{'param':>8} {'dir':>4} {'adjoint':>16} {'finite diff':>16} {'rel error':>10}")
     for r in results:
-        print(f"{r.param:>8} {r.direction:>4} {r.adjoint:>16.9e} {r.finite_difference:>16.9e} {r.relative_error:>10.2e}")
+        print(
+            f"{r.param:>8} {r.direction:>4} {r.adjoint:>16.9e} {r.finite_difference:>16.9e} {r.relative_error:>10.2e}"
+        )
     worst = max(r.relative_error for r in results)
     tol = args.tolerance or scene.gradient.tolerance
     print(f"max relative error: {worst:.3e} (tolerance {tol:g})")
@@ -116,22 +122,35 @@ def cmd_optimize(args) -> int:
     lr = args.lr or spec.learning_rate
     out = Path(args.out or f"out/{scene.name}_optimize")
     out.mkdir(parents=True, exist_ok=True)
-    print(f"optimize {scene.name}: {', '.join(names)}; loss {scene.loss.type}; {sim.steps} steps; Adam lr {lr:g} x scale")
+    print(
+        f"optimize {scene.name}: {', '.join(names)}; loss {scene.loss.type}; {sim.steps} steps; Adam lr {lr:g} x scale"
+    )
     t0 = time.perf_counter()
     result = adam(
-        obj.evaluate, params, names, obj.natural_scales(), iterations, lr, PARAM_BOUNDS,
+        obj.evaluate,
+        params,
+        names,
+        obj.natural_scales(),
+        iterations,
+        lr,
+        PARAM_BOUNDS,
         callback=lambda it, loss: print(f"  iteration {it:4d}  loss {loss:.6e}", flush=True),
     )
     wall = time.perf_counter() - t0
     print(f"loss {result.losses[0]:.6e} -> {result.best_loss:.6e} in {iterations} iterations ({wall:.1f} s)")
     np.savez(out / "params.npz", **result.params)
     (out / "optimization.json").write_text(
-        json.dumps({"params": names, "losses": result.losses, "best_loss": result.best_loss, "wall_time_s": wall}, indent=2)
+        json.dumps(
+            {"params": names, "losses": result.losses, "best_loss": result.best_loss, "wall_time_s": wall}, indent=2
+        )
     )
     recorder = Recorder(sim)
     obj.rollout(result.params, on_step=lambda n: recorder(n) if n == 0 or recorder.wants(n) else None)
     preview = recorder.write(out)
-    print(f"wrote {out}/params.npz, {out}/optimization.json, {out}/trajectory.npz" + (f", {out}/{preview}" if preview else ""))
+    print(
+        f"wrote {out}/params.npz, {out}/optimization.json, {out}/trajectory.npz"
+        + (f", {out}/{preview}" if preview else "")
+    )
     return 0
 
 
@@ -144,9 +163,8 @@ def cmd_bench(args) -> int:
 def cmd_render(args) -> int:
     import numpy as np
 
-    from cosim.render import write_preview
-
     from cosim.errors import InputError
+    from cosim.render import write_preview
 
     scene = _load(args)
     path = Path(args.trajectory)
@@ -160,7 +178,13 @@ def cmd_render(args) -> int:
     frames = [[traj[f"x_{n}"][i] for n in names] for i in range(len(traj["time"]))]
     spacing = min(b.spacing or 0.5 * scene.dx for b in scene.mpm.bodies)
     path = write_preview(
-        Path(args.output), frames, traj["time"], np.asarray(scene.cells) * scene.dx, spacing, scene.output.resolution, scene.output.fps
+        Path(args.output),
+        frames,
+        traj["time"],
+        np.asarray(scene.cells) * scene.dx,
+        spacing,
+        scene.output.resolution,
+        scene.output.fps,
     )
     print(f"wrote {path}")
     return 0
@@ -187,7 +211,9 @@ def positive_float(text: str) -> float:
 
 
 def make_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="cosim", description="Differentiable MPM co-simulation for soft-body manipulation.")
+    p = argparse.ArgumentParser(
+        prog="cosim", description="Differentiable MPM co-simulation for soft-body manipulation."
+    )
     sub = p.add_subparsers(dest="command", required=True)
 
     r = sub.add_parser("run", help="run a scene and write trajectory, metrics and a preview")

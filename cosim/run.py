@@ -82,7 +82,9 @@ class Recorder:
         return path.name
 
 
-def run_scene(scene: Scene, out_dir: Path, steps: int | None = None, progress: bool = True, preview: bool = True) -> dict:
+def run_scene(
+    scene: Scene, out_dir: Path, steps: int | None = None, progress: bool = True, preview: bool = True
+) -> dict:
     """Run ``scene`` for ``steps`` macro steps and write the outputs to ``out_dir``.
 
     Writes ``trajectory.npz``, ``metrics.json`` and ``preview.gif|mp4`` (see

@@ -59,7 +59,9 @@ def load_volume_mesh(path: Path, scale, center, key: str):
     return mesh
 
 
-def sample_shape(shape, dim: int, spacing: float, jitter: float, rng: np.random.Generator, key: str, source_dir: Path) -> np.ndarray:
+def sample_shape(
+    shape, dim: int, spacing: float, jitter: float, rng: np.random.Generator, key: str, source_dir: Path
+) -> np.ndarray:
     """Particle positions (n, dim) filling ``shape`` (a validated scene shape)."""
     center = np.asarray(shape.center, dtype=np.float64)
     if shape.type == "box":
@@ -79,7 +81,9 @@ def sample_shape(shape, dim: int, spacing: float, jitter: float, rng: np.random.
     else:  # the schema admits no other type
         raise SceneError(f"{key}.type: unknown shape '{shape.type}'")
     if len(pts) == 0:
-        raise SceneError(f"{key}: the shape holds no particle at spacing {spacing:g} m; make it larger or the spacing finer")
+        raise SceneError(
+            f"{key}: the shape holds no particle at spacing {spacing:g} m; make it larger or the spacing finer"
+        )
     if jitter > 0:
         pts = pts + rng.uniform(-0.5 * jitter * spacing, 0.5 * jitter * spacing, size=pts.shape)
     return pts

@@ -9,7 +9,6 @@ import sys
 import numpy as np
 import pytest
 import yaml
-
 from conftest import ROOT, SCENES, run_cli, scene_dict
 
 
@@ -19,7 +18,9 @@ def test_every_shipped_scene_runs_and_writes_its_outputs(path, tmp_path):
     assert res.returncode == 0, res.stderr
     traj = np.load(tmp_path / "trajectory.npz")
     names = [str(n) for n in traj["body_names"]]
-    assert len(traj["time"]) >= 2 and np.isclose(traj["time"][-1], 4 * yaml.safe_load(path.read_text())["time"]["frame_dt"])
+    assert len(traj["time"]) >= 2 and np.isclose(
+        traj["time"][-1], 4 * yaml.safe_load(path.read_text())["time"]["frame_dt"]
+    )
     for name in names:
         x = traj[f"x_{name}"]
         assert x.shape[0] == len(traj["time"]) and np.isfinite(x).all()
@@ -39,7 +40,7 @@ def test_default_scene_preview_shows_the_body_moving(tmp_path):
     assert "elastic_bounce_2d" in res.stdout
     frames = imageio.mimread(tmp_path / "preview.gif")
     first, last = (np.asarray(f)[..., :3].astype(int) for f in (frames[0], frames[-1]))
-    blue = lambda img: (np.abs(img - [31, 119, 180]).sum(axis=-1) < 40)  # body 0's colour
+    blue = lambda img: np.abs(img - [31, 119, 180]).sum(axis=-1) < 40  # body 0's colour
     assert blue(first).sum() > 200
     rows_first = np.nonzero(blue(first).any(axis=1))[0]
     rows_last = np.nonzero(blue(last).any(axis=1))[0]

@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from conftest import make_scene
+
 from cosim.adjoint.gradcheck import check_gradients
 from cosim.adjoint.objective import Objective
 from cosim.simulation import Simulation
@@ -23,12 +23,26 @@ def three_material_scene(steps=3, substeps=4, frame_dt=4e-3, loss=None):
     """Elastic, plastic (yielding) and liquid bodies, the elastic one hitting the floor, with controls."""
     dx = 1 / 32
     bodies = [
-        {"name": "jelly", "material": {"type": "elastic", "E": 2e3, "nu": 0.3},
-         "shape": {"type": "box", "center": [0.3, 3 * dx + 0.07], "size": [0.12, 0.12]}, "velocity": [0.3, -1.5], "jitter": 0.3},
-        {"name": "dough", "material": {"type": "plastic", "E": 3e3, "nu": 0.25, "yield_stress": 20.0},
-         "shape": {"type": "sphere", "center": [0.6, 3 * dx + 0.075], "radius": 0.07}, "velocity": [-1.0, -2.0], "jitter": 0.3},
-        {"name": "water", "material": {"type": "liquid", "E": 2e3, "nu": 0.3, "viscosity": 0.5},
-         "shape": {"type": "box", "center": [0.7, 0.3], "size": [0.1, 0.1]}, "velocity": [0.0, -0.5]},
+        {
+            "name": "jelly",
+            "material": {"type": "elastic", "E": 2e3, "nu": 0.3},
+            "shape": {"type": "box", "center": [0.3, 3 * dx + 0.07], "size": [0.12, 0.12]},
+            "velocity": [0.3, -1.5],
+            "jitter": 0.3,
+        },
+        {
+            "name": "dough",
+            "material": {"type": "plastic", "E": 3e3, "nu": 0.25, "yield_stress": 20.0},
+            "shape": {"type": "sphere", "center": [0.6, 3 * dx + 0.075], "radius": 0.07},
+            "velocity": [-1.0, -2.0],
+            "jitter": 0.3,
+        },
+        {
+            "name": "water",
+            "material": {"type": "liquid", "E": 2e3, "nu": 0.3, "viscosity": 0.5},
+            "shape": {"type": "box", "center": [0.7, 0.3], "size": [0.1, 0.1]},
+            "velocity": [0.0, -0.5],
+        },
     ]
     return make_scene(
         steps=steps,
@@ -121,10 +135,18 @@ def test_adjoint_matches_finite_differences_3d():
         dim=3,
         steps=2,
         time={"frame_dt": 4e-3, "substeps": 3},
-        mpm={"grid": {"cells": 16}, "bodies": [
-            {"name": "cube", "material": {"type": "elastic", "E": 2e3, "nu": 0.3},
-             "shape": {"type": "box", "center": [0.5, 3 * dx + 0.1, 0.5], "size": [0.2, 0.2, 0.2]},
-             "velocity": [0.2, -1.0, 0.1], "jitter": 0.3}]},
+        mpm={
+            "grid": {"cells": 16},
+            "bodies": [
+                {
+                    "name": "cube",
+                    "material": {"type": "elastic", "E": 2e3, "nu": 0.3},
+                    "shape": {"type": "box", "center": [0.5, 3 * dx + 0.1, 0.5], "size": [0.2, 0.2, 0.2]},
+                    "velocity": [0.2, -1.0, 0.1],
+                    "jitter": 0.3,
+                }
+            ],
+        },
         controls=[{"body": "cube", "impulse": [0.0, 1e-4, 0.0]}],
     )
     obj = Objective(Simulation(scene, requires_grad=True))

@@ -1,6 +1,5 @@
 """Constitutive pieces against closed forms: polar decomposition, stresses, return mapping."""
 
-
 import numpy as np
 import pytest
 import taichi as ti
@@ -32,7 +31,9 @@ def _polar(F: ti.types.ndarray(), R: ti.types.ndarray(), dim: ti.template()):
             R[i, a, b] = r[a, b]
 
 
-@pytest.mark.parametrize("dim,lo,hi,tol", [(2, 0.05, 20, 1e-12), (3, 0.5, 2, 1e-13), (3, 0.2, 5, 1e-11), (3, 0.05, 20, 1e-7)])
+@pytest.mark.parametrize(
+    "dim,lo,hi,tol", [(2, 0.05, 20, 1e-12), (3, 0.5, 2, 1e-13), (3, 0.2, 5, 1e-11), (3, 0.05, 20, 1e-7)]
+)
 def test_polar_rotation_matches_svd(dim, lo, hi, tol):
     """R = U V^T of the SVD; our Newton iteration's documented accuracy per stretch range."""
     F = random_deformations(200, dim, lo, hi)
@@ -43,7 +44,15 @@ def test_polar_rotation_matches_svd(dim, lo, hi, tol):
 
 
 @ti.kernel
-def _apply(F: ti.types.ndarray(), out: ti.types.ndarray(), mat: ti.template(), mu: float, lam: float, ys: float, which: ti.template()):
+def _apply(
+    F: ti.types.ndarray(),
+    out: ti.types.ndarray(),
+    mat: ti.template(),
+    mu: float,
+    lam: float,
+    ys: float,
+    which: ti.template(),
+):
     for i in range(F.shape[0]):
         m = ti.Matrix.zero(float, 3, 3)
         for a, b in ti.static(ti.ndrange(3, 3)):
@@ -62,25 +71,22 @@ def test_plastic_return_mapping_lands_on_the_yield_surface():
     mu, lam = lame_parameters(1e4, 0.3, 3)
     ys = 200.0
     limit = np.sqrt(2 / 3) * ys / (2 * mu)
-    F = random_deformations(100, 3, 0.8, 1.25, seed=3)
+    F = np.concatenate([random_deformations(50, 3, 0.8, 1.25, seed=3), random_deformations(50, 3, 0.99, 1.01, seed=4)])
     out = np.zeros_like(F)
     _apply(F, out, Plastic(), mu, lam, ys, 0)
 
     def dev_norm(G):
-        U, s, Vt = np.linalg.svd(G)
-        e = s - 1
-        d = e - e.mean(axis=1, keepdims=True)
-        return np.linalg.norm(d, axis=1), np.linalg.det(G)
+        e = np.linalg.svd(G, compute_uv=False) - 1
+        return np.linalg.norm(e - e.mean(axis=1, keepdims=True), axis=1)
 
-    n_in, J_in = dev_norm(F)
-    n_out, J_out = dev_norm(out)
+    n_in, n_out = dev_norm(F), dev_norm(out)
     outside = n_in > limit
-    assert outside.sum() > 10 and (~outside).sum() >= 0
+    assert outside.sum() > 10 and (~outside).sum() > 10
     assert np.allclose(n_out[outside], limit, rtol=1e-8)
     assert np.allclose(out[~outside], F[~outside], atol=1e-12)
     # the volumetric (mean) strain is untouched by the deviatoric return
-    U, s_in, _ = np.linalg.svd(F)
-    _, s_out, _ = np.linalg.svd(out)
+    s_in = np.linalg.svd(F, compute_uv=False)
+    s_out = np.linalg.svd(out, compute_uv=False)
     assert np.allclose((s_in - 1).mean(axis=1), (s_out - 1).mean(axis=1), atol=1e-12)
 
 

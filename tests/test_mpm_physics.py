@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import make_scene
 
-from conftest import make_scene, scene_dict
 from cosim.simulation import Simulation
 
 G = 9.81
@@ -60,14 +60,28 @@ def test_linear_momentum_is_conserved_without_gravity_and_walls(dim):
     c = 0.5
     half = [0.08] * dim
     bodies = [
-        body("elastic", {"type": "elastic", "E": 5e3}, {"type": "sphere", "center": [c - 0.12] + [c] * (dim - 1), "radius": 0.08},
-             velocity=[1.5] + [0.2] * (dim - 1)),
-        body("plastic", {"type": "plastic", "E": 5e3, "yield_stress": 50}, {"type": "box", "center": [c + 0.12] + [c] * (dim - 1), "size": [2 * h for h in half]},
-             velocity=[-1.0] + [0.0] * (dim - 1)),
+        body(
+            "elastic",
+            {"type": "elastic", "E": 5e3},
+            {"type": "sphere", "center": [c - 0.12] + [c] * (dim - 1), "radius": 0.08},
+            velocity=[1.5] + [0.2] * (dim - 1),
+        ),
+        body(
+            "plastic",
+            {"type": "plastic", "E": 5e3, "yield_stress": 50},
+            {"type": "box", "center": [c + 0.12] + [c] * (dim - 1), "size": [2 * h for h in half]},
+            velocity=[-1.0] + [0.0] * (dim - 1),
+        ),
     ]
     if dim == 2:  # liquids are exercised in 2D to keep the 3D compile short
-        bodies.append(body("liquid", {"type": "liquid", "E": 5e3}, {"type": "box", "center": [c, c + 0.2], "size": [0.15, 0.08]},
-                           velocity=[0.0, -1.0]))
+        bodies.append(
+            body(
+                "liquid",
+                {"type": "liquid", "E": 5e3},
+                {"type": "box", "center": [c, c + 0.2], "size": [0.15, 0.08]},
+                velocity=[0.0, -1.0],
+            )
+        )
     sim = sim_of(bodies, grid=32 if dim == 2 else 24, boundary="none", gravity=[0.0] * dim, dim=dim, steps=30)
     m = sim.mpm.mass[:, None]
     p0 = (m * sim.mpm.state()["v"]).sum(axis=0)
@@ -145,7 +159,14 @@ def test_liquid_at_rest_keeps_volume_a_level_surface_and_hydrostatic_pressure():
     width = 1 - 6 * dx
     material = {"type": "liquid", "E": 1e5, "nu": 0.3, "viscosity": 5.0, "density": 1000.0}
     sim = sim_of(
-        [body("water", material, {"type": "box", "center": [0.5, 3 * dx + 0.125], "size": [width, 0.25]}, hydrostatic=True)],
+        [
+            body(
+                "water",
+                material,
+                {"type": "box", "center": [0.5, 3 * dx + 0.125], "size": [width, 0.25]},
+                hydrostatic=True,
+            )
+        ],
         time={"frame_dt": 5e-3, "substeps": "auto"},
     )
     water = sim.mpm.bodies[0]
@@ -184,7 +205,14 @@ def test_energy_does_not_grow_in_a_bouncing_elastic_block():
     from cosim.diagnostics import energies
 
     sim = sim_of(
-        [body("b", {"type": "elastic", "E": 3e4}, {"type": "box", "center": [0.5, 0.4], "size": [0.2, 0.2]}, velocity=[0.5, -1.0])],
+        [
+            body(
+                "b",
+                {"type": "elastic", "E": 3e4},
+                {"type": "box", "center": [0.5, 0.4], "size": [0.2, 0.2]},
+                velocity=[0.5, -1.0],
+            )
+        ],
         time={"frame_dt": 4e-3, "substeps": "auto"},
     )
     e0 = energies(sim.mpm, sim.mpm.state(), sim.scene.gravity)["total"]

@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import yaml
-
 from conftest import make_scene, run_cli, scene_dict
+
 from cosim.adjoint.objective import Objective
 from cosim.adjoint.optimize import adam
 from cosim.simulation import Simulation
@@ -34,7 +34,11 @@ def test_adam_on_impulses_reaches_the_target():
 
 def test_cli_optimize_writes_its_outputs(tmp_path):
     path = tmp_path / "steer.yaml"
-    path.write_text(yaml.safe_dump(scene_dict(**steering_scene(optimize={"params": ["impulse"], "iterations": 3, "learning_rate": 0.3}))))
+    path.write_text(
+        yaml.safe_dump(
+            scene_dict(**steering_scene(optimize={"params": ["impulse"], "iterations": 3, "learning_rate": 0.3}))
+        )
+    )
     res = run_cli("optimize", str(path), "--out", str(tmp_path / "o"))
     assert res.returncode == 0, res.stderr
     assert "loss" in res.stdout

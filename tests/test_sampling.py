@@ -22,7 +22,11 @@ from cosim.scene import BoxShape, CylinderShape, SphereShape
         (BoxShape(type="box", center=[0.5, 0.5], size=[0.3, 0.2]), 2, 0.06),
         (SphereShape(type="sphere", center=[0.5, 0.5], radius=0.15), 2, math.pi * 0.15**2),
         (SphereShape(type="sphere", center=[0.5, 0.5, 0.5], radius=0.15), 3, 4 / 3 * math.pi * 0.15**3),
-        (CylinderShape(type="cylinder", center=[0.5, 0.5, 0.5], radius=0.1, height=0.3, axis="z"), 3, math.pi * 0.01 * 0.3),
+        (
+            CylinderShape(type="cylinder", center=[0.5, 0.5, 0.5], radius=0.1, height=0.3, axis="z"),
+            3,
+            math.pi * 0.01 * 0.3,
+        ),
     ],
     ids=["box2d", "disc", "ball", "cylinder"],
 )

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import yaml
-
 from conftest import ROOT, SCENES, make_scene, run_cli, scene_dict
+
 from cosim.errors import SceneError
 from cosim.scene import load_scene, parse_scene
 
@@ -49,7 +49,9 @@ def test_unknown_top_level_key():
 
 
 def test_wrong_type_and_literal():
-    assert "mpm.grid.cells: must be an integer or a list of integers" in error_of(scene_dict(mpm={**scene_dict()["mpm"], "grid": {"cells": "big"}}))
+    assert "mpm.grid.cells: must be an integer or a list of integers" in error_of(
+        scene_dict(mpm={**scene_dict()["mpm"], "grid": {"cells": "big"}})
+    )
     assert "precision: must be one of" in error_of(scene_dict(precision="float16"))
     assert "time.substeps: must be 'auto' or a positive integer" in error_of(scene_dict(time={"substeps": "many"}))
 
@@ -132,9 +134,15 @@ def test_mesh_sampling_fills_its_volume(tmp_path):
 def test_sampling_is_seeded():
     from cosim.simulation import build_bodies
 
-    a = build_bodies(make_scene(seed=3, mpm={**scene_dict()["mpm"], "bodies": [dict(scene_dict()["mpm"]["bodies"][0], jitter=0.4)]}))
-    b = build_bodies(make_scene(seed=3, mpm={**scene_dict()["mpm"], "bodies": [dict(scene_dict()["mpm"]["bodies"][0], jitter=0.4)]}))
-    c = build_bodies(make_scene(seed=4, mpm={**scene_dict()["mpm"], "bodies": [dict(scene_dict()["mpm"]["bodies"][0], jitter=0.4)]}))
+    a = build_bodies(
+        make_scene(seed=3, mpm={**scene_dict()["mpm"], "bodies": [dict(scene_dict()["mpm"]["bodies"][0], jitter=0.4)]})
+    )
+    b = build_bodies(
+        make_scene(seed=3, mpm={**scene_dict()["mpm"], "bodies": [dict(scene_dict()["mpm"]["bodies"][0], jitter=0.4)]})
+    )
+    c = build_bodies(
+        make_scene(seed=4, mpm={**scene_dict()["mpm"], "bodies": [dict(scene_dict()["mpm"]["bodies"][0], jitter=0.4)]})
+    )
     assert np.array_equal(a[0].positions, b[0].positions)
     assert not np.array_equal(a[0].positions, c[0].positions)
 

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from conftest import make_scene, scene_dict
+
 from cosim.errors import SceneError, SimulationError
 from cosim.simulation import Simulation
 
@@ -27,7 +27,9 @@ def test_fixed_substeps_below_the_elastic_bound_is_refused_naming_the_body():
 def test_auto_substeps_follow_the_cfl_bound():
     """Auto substeps keep max|v| dt / dx within time.cfl, whatever the speed."""
     bodies = [block() | {"velocity": [6.0, 0.0]}]
-    scene = make_scene(time={"frame_dt": 4e-3, "substeps": "auto", "cfl": 0.3}, mpm={"grid": {"cells": 32}, "bodies": bodies}, steps=5)
+    scene = make_scene(
+        time={"frame_dt": 4e-3, "substeps": "auto", "cfl": 0.3}, mpm={"grid": {"cells": 32}, "bodies": bodies}, steps=5
+    )
     sim = Simulation(scene)
     infos = [sim.step() for _ in range(5)]
     assert sim.max_cfl <= 0.3
@@ -36,7 +38,14 @@ def test_auto_substeps_follow_the_cfl_bound():
 
 
 def test_fixed_substeps_cfl_violation_names_body_and_step():
-    bodies = [block() | {"name": "bullet", "velocity": [30.0, 0.0], "shape": {"type": "box", "center": [0.3, 0.5], "size": [0.1, 0.1]}}]
+    bodies = [
+        block()
+        | {
+            "name": "bullet",
+            "velocity": [30.0, 0.0],
+            "shape": {"type": "box", "center": [0.3, 0.5], "size": [0.1, 0.1]},
+        }
+    ]
     scene = make_scene(time={"frame_dt": 4e-3, "substeps": 4}, mpm={"grid": {"cells": 32}, "bodies": bodies})
     sim = Simulation(scene)
     with pytest.raises(SimulationError, match=r"step 0: CFL number .* in body 'bullet'"):
@@ -44,7 +53,10 @@ def test_fixed_substeps_cfl_violation_names_body_and_step():
 
 
 def test_nan_is_caught_at_the_step_it_appears_with_body_and_quantity():
-    bodies = [block() | {"name": "a"}, block() | {"name": "b", "shape": {"type": "box", "center": [0.5, 0.2], "size": [0.1, 0.1]}}]
+    bodies = [
+        block() | {"name": "a"},
+        block() | {"name": "b", "shape": {"type": "box", "center": [0.5, 0.2], "size": [0.1, 0.1]}},
+    ]
     sim = Simulation(make_scene(mpm={"grid": {"cells": 32}, "bodies": bodies}))
     sim.step()
     state = sim.mpm.state()

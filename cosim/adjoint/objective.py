@@ -27,9 +27,7 @@ class Objective:
         self.initial_material = sim.mpm.params()  # evaluations overwrite the engine's copy
         self.loss = Loss(sim.scene, sim.slices, sim.mpm.mass)
         self.tape = Tape()
-        self.ctrl_index = (
-            np.concatenate([c.indices for c in sim.controls]) if sim.controls else np.zeros(0, dtype=int)
-        )
+        self.ctrl_index = np.concatenate([c.indices for c in sim.controls]) if sim.controls else np.zeros(0, dtype=int)
 
     def initial_params(self) -> dict[str, np.ndarray]:
         s = self.initial_state
@@ -60,7 +58,9 @@ class Objective:
         sim = self.sim
         s0 = dict(self.initial_state, x=params["x0"], v=params["v0"])
         sim.mpm.set_state(s0)
-        sim.mpm.set_params(E=params.get("E", self.initial_material["E"]), nu=params.get("nu", self.initial_material["nu"]))
+        sim.mpm.set_params(
+            E=params.get("E", self.initial_material["E"]), nu=params.get("nu", self.initial_material["nu"])
+        )
         sim.step_index = 0
         self.tape.clear()
         if on_step is not None:

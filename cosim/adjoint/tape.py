@@ -26,7 +26,13 @@ class StepRecord:
     token: int = -1  # the engine's id of this forward step (lets it skip a recompute)
 
     def as_dict(self) -> dict:
-        return {"state": self.state, "dt": self.dt, "substeps": self.substeps, "impulse": self.impulse, "token": self.token}
+        return {
+            "state": self.state,
+            "dt": self.dt,
+            "substeps": self.substeps,
+            "impulse": self.impulse,
+            "token": self.token,
+        }
 
     @property
     def nbytes(self) -> int:

@@ -14,8 +14,6 @@ Everything is plain arithmetic (no ``ti.svd``) so Taichi's reverse-mode
 autodiff goes through it in 2D and 3D; see ``polar_rotation``.
 """
 
-
-
 import taichi as ti
 
 SCALED_NEWTON_ITERATIONS = 3
@@ -36,8 +34,16 @@ def inverse_transpose_3(R):
     cof = ti.Matrix(
         [
             [c00, c01, c02],
-            [R[0, 2] * R[2, 1] - R[0, 1] * R[2, 2], R[0, 0] * R[2, 2] - R[0, 2] * R[2, 0], R[0, 1] * R[2, 0] - R[0, 0] * R[2, 1]],
-            [R[0, 1] * R[1, 2] - R[0, 2] * R[1, 1], R[0, 2] * R[1, 0] - R[0, 0] * R[1, 2], R[0, 0] * R[1, 1] - R[0, 1] * R[1, 0]],
+            [
+                R[0, 2] * R[2, 1] - R[0, 1] * R[2, 2],
+                R[0, 0] * R[2, 2] - R[0, 2] * R[2, 0],
+                R[0, 1] * R[2, 0] - R[0, 0] * R[2, 1],
+            ],
+            [
+                R[0, 1] * R[1, 2] - R[0, 2] * R[1, 1],
+                R[0, 2] * R[1, 0] - R[0, 0] * R[1, 2],
+                R[0, 0] * R[1, 1] - R[0, 1] * R[1, 0],
+            ],
         ]
     )
     return inv_det * cof

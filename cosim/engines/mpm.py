@@ -23,10 +23,8 @@ One substep, split into the phases a coupler drives (see DESIGN.md):
   material): move particles, update F, apply the material's return mapping.
 """
 
-
-
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import taichi as ti
@@ -147,7 +145,9 @@ class MPMEngine:
                 "x": np.concatenate([b.positions for b in bodies]),
                 "v": np.concatenate([b.velocities for b in bodies]),
                 "C": np.zeros((n, d, d)),
-                "F": np.concatenate([np.broadcast_to(eye, (b.n, d, d)) if b.deformation is None else b.deformation for b in bodies]),
+                "F": np.concatenate(
+                    [np.broadcast_to(eye, (b.n, d, d)) if b.deformation is None else b.deformation for b in bodies]
+                ),
             }
         )
 
@@ -187,7 +187,9 @@ class MPMEngine:
             self.affine[g, p] = (-dt * vol * 4.0 * self.inv_dx * self.inv_dx) * tau + m_p * self.C[src, p]
 
     @ti.kernel
-    def _p2g(self, serial: ti.template(), b: ti.i32, start: ti.i32, end: ti.i32, src: ti.i32, g: ti.i32, control_share: float):
+    def _p2g(
+        self, serial: ti.template(), b: ti.i32, start: ti.i32, end: ti.i32, src: ti.i32, g: ti.i32, control_share: float
+    ):
         """Scatter mass and momentum. ``serial``: one thread, non-atomic adds (faster than
         atomics on CPUs); its adjoint is a gather and runs with ``serial=False``."""
         ti.loop_config(serialize=serial)

@@ -1,0 +1,185 @@
+"""Scene validation beyond single keys, and pydantic errors in the user's words.
+
+``format_errors`` turns pydantic's errors into ``key.path[i]: message`` lines;
+``semantic_problems`` checks what spans several keys (vector lengths against
+``dim``, body names, files, 3D-only shapes).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+from pydantic import BaseModel, ValidationError
+
+from cosim.scene import (
+    BoxShape,
+    CylinderShape,
+    ElasticMaterial,
+    LiquidMaterial,
+    MeshShape,
+    PlasticMaterial,
+    Scene,
+    SphereShape,
+)
+
+_TAGS = {"elastic", "plastic", "liquid", "box", "sphere", "cylinder", "mesh"}
+
+
+def _path(loc: tuple) -> str:
+    out = ""
+    for i, part in enumerate(loc):
+        if isinstance(part, int):
+            out += f"[{part}]"
+        elif part in _TAGS and i > 0 and loc[i - 1] in ("material", "shape"):
+            continue  # the discriminator's branch name is noise for the user
+        elif isinstance(part, str) and part.startswith("function-"):
+            continue
+        else:
+            out += ("." if out else "") + str(part)
+    return out or "(top level)"
+
+
+def _allowed_keys(loc: tuple) -> list[str]:
+    """Keys allowed in the mapping that holds ``loc[-1]`` (for unknown-key errors)."""
+    model: Any = Scene
+    for part in loc[:-1]:
+        if isinstance(part, int):
+            continue
+        if part in _TAGS:
+            model = next(m for m in _UNION_MEMBERS if m.model_fields["type"].annotation.__args__[0] == part)
+            continue
+        if not (isinstance(model, type) and issubclass(model, BaseModel)) or part not in model.model_fields:
+            return []
+        ann = model.model_fields[part].annotation
+        model = _model_in(ann)
+        if model is None:
+            return []
+    if isinstance(model, type) and issubclass(model, BaseModel):
+        return sorted(k for k, f in model.model_fields.items() if not f.exclude)
+    return []
+
+
+_UNION_MEMBERS = (ElasticMaterial, PlasticMaterial, LiquidMaterial, BoxShape, SphereShape, CylinderShape, MeshShape)
+
+
+def _model_in(annotation: Any) -> Any:
+    """The BaseModel class inside an annotation such as list[X], X | None, Annotated[...]."""
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return annotation
+    for arg in getattr(annotation, "__args__", ()) or ():
+        found = _model_in(arg)
+        if found is not None:
+            return found
+    for arg in getattr(annotation, "__metadata__", ()) or ():
+        found = _model_in(arg)
+        if found is not None:
+            return found
+    origin = getattr(annotation, "__origin__", None)
+    if origin is not None and origin is not annotation:
+        return _model_in(origin)
+    return None
+
+
+def _message(err: dict) -> str:
+    kind, ctx = err["type"], err.get("ctx", {})
+    loc = tuple(err["loc"])
+    if kind == "extra_forbidden":
+        allowed = _allowed_keys(loc)
+        hint = f"; allowed keys here: {', '.join(allowed)}" if allowed else ""
+        return f"unknown key{hint}"
+    if kind == "missing":
+        return "required key is missing"
+    ops = {"greater_than": ">", "greater_than_equal": ">=", "less_than": "<", "less_than_equal": "<="}
+    if kind in ops:
+        bound = next(iter(ctx.values()))
+        return f"must be {ops[kind]} {bound} (got {err.get('input')!r})"
+    if kind == "literal_error":
+        return f"must be one of {ctx.get('expected')} (got {err.get('input')!r})"
+    if kind == "union_tag_invalid":
+        return f"unknown type {ctx.get('tag')!r}; choose one of {ctx.get('expected_tags')}"
+    if kind == "union_tag_not_found":
+        return "missing 'type' key"
+    if kind == "finite_number":
+        return "must be a finite number"
+    if kind in ("float_parsing", "float_type"):
+        return f"must be a number (got {err.get('input')!r})"
+    if kind in ("int_parsing", "int_type", "int_from_float"):
+        return f"must be an integer (got {err.get('input')!r})"
+    if kind in ("list_type",):
+        return f"must be a list (got {err.get('input')!r})"
+    if kind in ("model_type", "model_attributes_type", "dict_type"):
+        return f"must be a mapping of keys (got {err.get('input')!r})"
+    if kind == "too_short":
+        return f"needs at least {ctx.get('min_length')} entries"
+    if kind == "value_error":
+        return str(ctx.get("error", err["msg"]))
+    return err["msg"]
+
+
+def format_errors(exc: ValidationError) -> list[str]:
+    return [f"{_path(tuple(e['loc']))}: {_message(e)}" for e in exc.errors()]
+
+
+def semantic_problems(scene: Scene) -> list[str]:
+    """Checks that need more than one key: vector lengths, names, files, fit in the grid."""
+    d = scene.dim
+    problems: list[str] = []
+
+    def vec(path: str, value: list | None, n: int = d) -> None:
+        if value is not None and len(value) != n:
+            problems.append(f"{path}: must have {n} entries (dim is {d}), got {len(value)}")
+
+    cells = scene.mpm.grid.cells
+    if len(cells) not in (1, d):
+        problems.append(f"mpm.grid.cells: give one number or {d} (dim is {d}), got {len(cells)}")
+    vec("mpm.gravity", scene.mpm.gravity)
+    names = [b.name for b in scene.mpm.bodies]
+    for i, body in enumerate(scene.mpm.bodies):
+        base = f"mpm.bodies[{i}]"
+        if names.count(body.name) > 1:
+            problems.append(f"{base}.name: '{body.name}' is used by more than one body; names must be unique")
+        shape = body.shape
+        vec(f"{base}.shape.center", shape.center)
+        if isinstance(shape, BoxShape):
+            vec(f"{base}.shape.size", shape.size)
+        if isinstance(shape, (CylinderShape, MeshShape)) and d != 3:
+            problems.append(f"{base}.shape.type: '{shape.type}' needs dim 3; in 2D use box or sphere")
+        if isinstance(shape, MeshShape):
+            if isinstance(shape.scale, list):
+                vec(f"{base}.shape.scale", shape.scale)
+            path = (scene.source_dir / shape.file).resolve()
+            if not path.is_file():
+                problems.append(f"{base}.shape.file: file not found: {path}")
+        vec(f"{base}.velocity", body.velocity)
+        if body.hydrostatic and body.material.type != "liquid":
+            problems.append(f"{base}.hydrostatic: only liquids can start hydrostatic; remove the key")
+        if body.spacing is not None and body.spacing > scene.dx:
+            problems.append(
+                f"{base}.spacing: {body.spacing} is coarser than the grid spacing dx = {scene.dx:g}; "
+                "use at most dx (dx / 2 is usual)"
+            )
+    for i, ctl in enumerate(scene.controls):
+        base = f"controls[{i}]"
+        if ctl.body not in names:
+            problems.append(f"{base}.body: no body named '{ctl.body}'; bodies are {names}")
+        vec(f"{base}.impulse", ctl.impulse)
+        if ctl.region is not None:
+            vec(f"{base}.region.min", ctl.region.min)
+            vec(f"{base}.region.max", ctl.region.max)
+    loss = scene.loss
+    if loss.body is not None and loss.body not in names:
+        problems.append(f"loss.body: no body named '{loss.body}'; bodies are {names}")
+    if loss.type == "com_target":
+        if loss.body is None:
+            problems.append("loss.body: com_target needs the body whose centre of mass is steered")
+        if loss.target is None:
+            problems.append("loss.target: com_target needs a target point")
+    vec("loss.target", loss.target)
+    if "impulse" in scene.gradient.params and not scene.controls and "gradient" in scene.model_fields_set:
+        problems.append("gradient.params: 'impulse' needs at least one entry under controls")
+    if "impulse" in scene.optimize.params and not scene.controls and "optimize" in scene.model_fields_set:
+        problems.append("optimize.params: 'impulse' needs at least one entry under controls")
+    if scene.steps * scene.time.frame_dt > 1e4 or not math.isfinite(scene.time.frame_dt):
+        problems.append("time.frame_dt: steps * frame_dt exceeds 10^4 s; is frame_dt in seconds?")
+    return problems
