@@ -1,0 +1,161 @@
+"""Kinematic rigid bodies: bodies that follow a prescribed motion.
+
+They are the moving boundaries of the contact models (a shaken container, a
+pouring glass) and stay useful next to DART for scripted obstacles.
+
+Frame convention (shared with the contact models):
+- pose: position ``p`` [m] of the body frame's origin in the world, and the
+  rotation ``R`` (d x d) taking body-frame vectors to world vectors, so a body
+  point r_b sits at x = p + R r_b;
+- twist: linear velocity ``v`` [m/s] of the body origin and angular velocity
+  ``w`` [rad/s] in the world frame (a scalar in 2D, a 3-vector in 3D); a point
+  x of the body moves with v_c = v + w x (x - p).
+
+Motions (all start from the initial pose ``p0``, ``R0``):
+- ``constant``: constant ``velocity`` and ``angular_velocity``;
+- ``piecewise``: consecutive segments, each a duration with its own constant
+  velocity and angular velocity; ``repeat`` cycles them (e.g. a left-right shake
+  at constant speed), else the body rests after the last;
+- ``shake``: sinusoidal translation p0 + amplitude sin(2 pi frequency t + phase),
+  no rotation;
+- ``waypoints``: piecewise-linear positions through ``positions`` at ``times``
+  (the first time is 0 and the first position p0), then at rest.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+def constant(p0, R0, velocity, angular_velocity) -> "Motion":
+    """A body moving with a constant twist forever."""
+    return Motion(
+        "constant",
+        np.asarray(p0, float),
+        np.asarray(R0, float),
+        [Segment(math.inf, np.asarray(velocity, float), angular_velocity)],
+    )
+
+
+def rotation_about(w: np.ndarray | float, angle_scale: float, dim: int) -> np.ndarray:
+    """exp([w]x * angle_scale): rotation by |w| * angle_scale about w (2D: w is the angle rate)."""
+    if dim == 2:
+        a = float(w) * angle_scale
+        c, s = math.cos(a), math.sin(a)
+        return np.array([[c, -s], [s, c]])
+    w = np.asarray(w, dtype=np.float64)
+    theta = float(np.linalg.norm(w)) * angle_scale
+    if theta == 0.0:
+        return np.eye(3)
+    k = w / np.linalg.norm(w)
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + math.sin(theta) * K + (1 - math.cos(theta)) * K @ K
+
+
+@dataclass
+class Segment:
+    duration: float  # [s]
+    velocity: np.ndarray  # (d,) [m/s]
+    angular_velocity: np.ndarray | float  # [rad/s], world frame
+
+
+@dataclass
+class Motion:
+    """A prescribed motion: ``pose(t)`` and ``twist(t)`` for t >= 0 [s]."""
+
+    kind: str
+    p0: np.ndarray
+    R0: np.ndarray
+    segments: list[Segment] = field(default_factory=list)  # constant / piecewise
+    repeat: bool = False
+    amplitude: np.ndarray | None = None  # shake [m]
+    frequency: float = 0.0  # shake [Hz]
+    phase: float = 0.0  # shake [rad]
+    times: np.ndarray | None = None  # waypoints [s]
+    positions: np.ndarray | None = None  # waypoints (n, d) [m]
+
+    @property
+    def dim(self) -> int:
+        return len(self.p0)
+
+    def _zero_w(self):
+        return 0.0 if self.dim == 2 else np.zeros(3)
+
+    # -------------------------------------------------------------- segments
+    def _segment_at(self, t: float) -> tuple[int, float, np.ndarray, np.ndarray]:
+        """Index of the segment holding t, time into it, and the pose at its start.
+
+        Index ``len(segments)`` means after the last segment (at rest). Velocities
+        are world-frame, so a whole cycle of ``repeat`` shifts by the same
+        translation and left-multiplies by the same rotation every time.
+        """
+        p, R = self.p0.astype(np.float64), self.R0.astype(np.float64)
+        period = sum(seg.duration for seg in self.segments)
+        if self.repeat and 0 < period < math.inf:
+            cycles = math.floor(t / period)
+            shift, turn = self._advance(np.zeros(self.dim), np.eye(self.dim), period)
+            p, R = p + cycles * shift, np.linalg.matrix_power(turn, cycles) @ R
+            t -= cycles * period
+        for i, seg in enumerate(self.segments):
+            if t < seg.duration:
+                return i, t, p, R
+            p, R = self._advance_one(p, R, seg, seg.duration)
+            t -= seg.duration
+        return len(self.segments), t, p, R
+
+    @staticmethod
+    def _advance_one(p, R, seg: Segment, dt: float):
+        """Pose after moving ``dt`` within one constant-twist segment (rotation about the body origin)."""
+        return p + seg.velocity * dt, rotation_about(seg.angular_velocity, dt, len(p)) @ R
+
+    def _advance(self, p, R, duration: float):
+        for seg in self.segments:
+            step = min(seg.duration, duration)
+            p, R = self._advance_one(p, R, seg, step)
+            duration -= step
+        return p, R
+
+    # -------------------------------------------------------------- public
+    def pose(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """Position (d,) and rotation (d, d) of the body frame at time t."""
+        if self.kind in ("constant", "piecewise"):
+            i, tau, p, R = self._segment_at(t)
+            if i < len(self.segments):
+                return self._advance_one(p, R, self.segments[i], tau)
+            return p, R
+        if self.kind == "shake":  # starts at p0 whatever the phase
+            w = 2 * math.pi * self.frequency
+            return self.p0 + self.amplitude * (math.sin(w * t + self.phase) - math.sin(self.phase)), self.R0.copy()
+        # waypoints
+        return np.array([np.interp(t, self.times, self.positions[:, k]) for k in range(self.dim)]), self.R0.copy()
+
+    def twist(self, t: float) -> tuple[np.ndarray, np.ndarray | float]:
+        """Linear velocity (d,) of the body origin and angular velocity (world frame) at time t."""
+        if self.kind in ("constant", "piecewise"):
+            i, _, _, _ = self._segment_at(t)
+            if i < len(self.segments):
+                seg = self.segments[i]
+                return np.asarray(seg.velocity, dtype=np.float64), seg.angular_velocity
+            return np.zeros(self.dim), self._zero_w()
+        if self.kind == "shake":
+            w = 2 * math.pi * self.frequency
+            return self.amplitude * w * math.cos(w * t + self.phase), self._zero_w()
+        k = int(np.searchsorted(self.times, t, side="right")) - 1
+        if k >= len(self.times) - 1:
+            return np.zeros(self.dim), self._zero_w()
+        return (self.positions[k + 1] - self.positions[k]) / (self.times[k + 1] - self.times[k]), self._zero_w()
+
+    def point_velocity(self, t: float, x: np.ndarray) -> np.ndarray:
+        """Velocity [m/s] of the body's material point at world position(s) x: v + w x (x - p)."""
+        p, _ = self.pose(t)
+        v, w = self.twist(t)
+        r = np.atleast_2d(x) - p
+        if self.dim == 2:
+            spin = float(w) * np.stack([-r[:, 1], r[:, 0]], axis=1)
+        else:
+            spin = np.cross(np.asarray(w), r)
+        out = v + spin
+        return out[0] if np.ndim(x) == 1 else out
