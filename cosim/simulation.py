@@ -159,6 +159,8 @@ class Simulation:
         self.step_index = 0
         self.max_cfl = 0.0
         self.total_substeps = 0
+        # called as before_step(t0, dt, K) before each engine step: moving boundaries set their states
+        self.before_step = None
 
     # ------------------------------------------------------------ time stepping
     def _auto_substeps(self, speed: float) -> int:
@@ -192,6 +194,8 @@ class Simulation:
                     f"{self.scene.time.max_substeps} (max speed {speed:.3g} m/s): the simulation is blowing up or "
                     "frame_dt is too long"
                 )
+            if self.before_step is not None:
+                self.before_step(self.step_index * self.frame_dt, self.frame_dt / K, K)
             info = self.mpm.step(self.frame_dt / K, K, impulse)
             after = self.mpm.state()
             self._check_finite(after)

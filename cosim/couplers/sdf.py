@@ -268,7 +268,8 @@ class SDFField:
         """Signed distance [m] and unit outward normal at body-frame point p."""
         upper = self.origin + self.spacing * (ti.Vector(self.shape) - 1)
         clamped = ti.min(ti.max(p, self.origin), upper)
-        outside = (p - clamped).norm()
+        out2 = (p - clamped).norm_sqr()
+        outside = out2 / ti.sqrt(ti.max(out2, 1e-30))  # |p - clamped|, with a finite adjoint at 0
         rel = (clamped - self.origin) / self.spacing
         base = ti.min(ti.max(ti.cast(ti.floor(rel), ti.i32), 0), ti.Vector(self.shape) - 2)
         frac = rel - ti.cast(base, float)
@@ -280,4 +281,6 @@ class SDFField:
                 weight *= frac[k] if corner[k] else 1.0 - frac[k]
             dist += weight * self.values[base + corner]
             grad += weight * self.grads[base + corner]
-        return dist + outside, grad / ti.max(grad.norm(), 1e-12)
+        # sqrt(|g|^2 + tiny): the normalisation keeps a finite adjoint where the
+        # interpolated gradient vanishes (a box's centre, medial axes)
+        return dist + outside, grad / ti.sqrt(grad.norm_sqr() + 1e-24)

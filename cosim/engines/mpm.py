@@ -136,6 +136,8 @@ class MPMEngine:
         self.p_vol.from_numpy(self._real([b.particle_volume for b in bodies]))
         self.mass = np.concatenate([np.full(b.n, b.particle_mass) for b in bodies])
         self._serial = bool(config.serial_p2g)
+        self._hook = None
+        self._grid_out = self.grid_v  # the grid velocities G2P gathers (a hook's output once attached)
         self._slot = 0
         self._token = 0
         self._resident = -1  # token of the step whose substeps fill the slots
@@ -225,14 +227,15 @@ class MPMEngine:
                             else:
                                 vel[k] = 0.0
             self.grid_v[g, I] = vel
-            if ti.static(not self.cfg.requires_grad):
+            if ti.static(self._fused_clear()):
                 # forward-only: leave the grid cleared for the next P2G (saves a pass);
-                # with gradients the backward pass reads these values back
+                # with gradients the backward pass reads these values back, and
+                # a contact hook reads the masses after this kernel
                 self.grid_mom[g, I] = ti.Vector.zero(float, self.dim)
                 self.grid_m[g, I] = 0.0
 
     @ti.kernel
-    def _g2p(self, serial: ti.template(), src: ti.i32, dst: ti.i32, g: ti.i32):
+    def _g2p(self, serial: ti.template(), src: ti.i32, dst: ti.i32, g: ti.i32, grid_vel: ti.template()):
         """Gather velocity and affine field from the grid into slot ``dst``.
 
         A parallel gather; its adjoint scatters onto the grid, so it runs with
@@ -249,7 +252,7 @@ class MPMEngine:
                 weight = 1.0
                 for k in ti.static(range(self.dim)):
                     weight *= w[offset[k]][k]
-                node_v = self.grid_v[g, base + offset]
+                node_v = grid_vel[g, base + offset]
                 new_v += weight * node_v
                 new_C += (4.0 * self.inv_dx * weight) * node_v.outer_product(dpos)
             self.v[dst, p] = new_v
@@ -312,6 +315,10 @@ class MPMEngine:
             return 0.0
         return 1e-8 * float(min(b.particle_mass for b in self.bodies))
 
+    def _fused_clear(self) -> bool:
+        """Forward-only engines without a grid hook clear the grid inside grid_update."""
+        return not self.cfg.requires_grad and self._hook is None
+
     def _grid_index(self, src: int) -> int:
         """The grid copy substep ``src`` uses: its own with gradients, the only one otherwise."""
         return src if self.cfg.requires_grad else 0
@@ -319,25 +326,43 @@ class MPMEngine:
     def pre_coupling(self, src: int, dt: float, control_share: float = 0.0) -> None:
         """Clear the grid and scatter every body onto it (P2G)."""
         g = self._grid_index(src)
-        if self.cfg.requires_grad:  # forward-only engines clear it in grid_update
+        if not self._fused_clear():  # else grid_update clears it
             self._clear_grid(g)
         for b, (mat, (lo, hi)) in enumerate(zip(self.materials, self.ranges)):
             self._stress(mat, b, lo, hi, src, g, dt)
             self._p2g(self._serial, b, lo, hi, src, g, control_share)
 
-    def coupling(self, src: int, dt: float) -> None:
-        """Grid update: velocities, gravity, walls. Contact models hook in here."""
-        self._grid_update(self._grid_index(src), dt, self._mass_floor())
+    def attach_grid_hook(self, hook) -> None:
+        """Let a contact model rewrite grid velocities after the grid update.
+
+        The hook reads ``grid_v[g]`` and writes its own ``hook.output`` field of
+        the same shape (never in place: the adjoint needs the input), which
+        G2P then gathers from. Methods: ``apply(g, s, dt)`` for substep s of
+        the macro step using grid copy g, ``apply_grad(g, s, dt)``, ``zero_grad()``.
+        """
+        if self._hook is not None:
+            raise ValueError("one grid hook per engine")
+        if self._token > 0:
+            raise ValueError("attach grid hooks before the first step (kernels are specialised on them)")
+        self._hook = hook
+        self._grid_out = hook.output
+
+    def coupling(self, src: int, s: int, dt: float) -> None:
+        """Grid update (velocities, gravity, walls), then the contact model's grid hook."""
+        g = self._grid_index(src)
+        self._grid_update(g, dt, self._mass_floor())
+        if self._hook is not None:
+            self._hook.apply(g, s, dt)
 
     def post_coupling(self, src: int, dst: int, dt: float) -> None:
         """Gather from the grid (G2P), advect and update deformation per body."""
-        self._g2p(False, src, dst, self._grid_index(src))
+        self._g2p(False, src, dst, self._grid_index(src), self._grid_out)
         for b, (mat, (lo, hi)) in enumerate(zip(self.materials, self.ranges)):
             self._advect(mat, b, lo, hi, src, dst, dt)
 
-    def _substep(self, src: int, dst: int, dt: float, control_share: float) -> None:
+    def _substep(self, src: int, dst: int, dt: float, control_share: float, s: int) -> None:
         self.pre_coupling(src, dt, control_share)
-        self.coupling(src, dt)
+        self.coupling(src, s, dt)
         self.post_coupling(src, dst, dt)
 
     def _substep_grad(self, s: int, dt: float, control_share: float) -> None:
@@ -345,7 +370,9 @@ class MPMEngine:
         for b in reversed(range(len(self.bodies))):
             lo, hi = self.ranges[b]
             self._advect.grad(self.materials[b], b, lo, hi, s, s + 1, dt)
-        self._g2p.grad(self._serial, s, s + 1, s)
+        self._g2p.grad(self._serial, s, s + 1, s, self._grid_out)
+        if self._hook is not None:
+            self._hook.apply_grad(s, s, dt)
         self._grid_update.grad(s, dt, self._mass_floor())
         for b in reversed(range(len(self.bodies))):
             lo, hi = self.ranges[b]
@@ -397,11 +424,11 @@ class MPMEngine:
             if self._slot != 0:
                 self._copy_slot(self._slot, 0)
             for s in range(substeps):
-                self._substep(s, s + 1, dt, share)
+                self._substep(s, s + 1, dt, share, s)
             self._slot = substeps
         else:
-            for _ in range(substeps):
-                self._substep(self._slot, 1 - self._slot, dt, share)
+            for s in range(substeps):
+                self._substep(self._slot, 1 - self._slot, dt, share, s)
                 self._slot = 1 - self._slot
         self._token += 1
         self._resident = self._token if self.cfg.requires_grad else -1
@@ -424,10 +451,12 @@ class MPMEngine:
         if record.get("token") != self._resident:
             self.set_state(record["state"])
             for s in range(K):
-                self._substep(s, s + 1, dt, share)
+                self._substep(s, s + 1, dt, share, s)
             self._slot = K
         for fld in (self.x, self.v, self.C, self.F, self.grid_mom, self.grid_m, self.grid_v, self.affine):
             fld.grad.fill(0)
+        if self._hook is not None:
+            self._hook.zero_grad()
         self.E.grad.fill(0)
         self.nu.grad.fill(0)
         if self.control is not None:
