@@ -81,14 +81,21 @@ class Camera:
         return edges
 
 
-def render_frame(camera: Camera, positions: list[np.ndarray], radius_px: int, label: str = "") -> np.ndarray:
-    """One RGB image (H, W, 3) of the bodies' particles."""
+RIGID_COLOR = np.array([110.0, 110.0, 110.0])
+
+
+def render_frame(
+    camera: Camera, positions: list[np.ndarray], radius_px: int, label: str = "", rigid: list[np.ndarray] = ()
+) -> np.ndarray:
+    """One RGB image (H, W, 3): particles coloured by body, rigid bodies' surface points in grey."""
     from PIL import Image, ImageDraw
 
     w, h = int(camera.size[0]), int(camera.size[1])
     img = np.full((h, w, 3), 255, dtype=np.uint8)
-    pts = np.concatenate(positions) if positions else np.zeros((0, camera.dim))
-    color = np.concatenate([np.repeat(PALETTE[i % len(PALETTE)][None], len(p), 0) for i, p in enumerate(positions)])
+    sets = list(positions) + list(rigid)
+    colors = [PALETTE[i % len(PALETTE)] for i in range(len(positions))] + [RIGID_COLOR] * len(rigid)
+    pts = np.concatenate(sets) if sets else np.zeros((0, camera.dim))
+    color = np.concatenate([np.repeat(c[None], len(p), 0) for c, p in zip(colors, sets)])
     px, depth = camera.project(pts)
     shade = 1.0 - 0.55 * depth  # nearer is brighter
     rgb = np.clip(color * shade[:, None], 0, 255).astype(np.uint8)
@@ -119,13 +126,18 @@ def write_preview(
     spacing: float,
     resolution: int = 400,
     fps: int = 30,
+    rigid_frames: list[list[np.ndarray]] | None = None,
 ) -> Path:
-    """Write an animated GIF (or MP4, by the suffix) of the saved frames."""
+    """Write an animated GIF (or MP4, by the suffix) of the saved frames.
+
+    ``rigid_frames``: per frame, world-space surface points of each rigid body.
+    """
     import imageio.v2 as imageio
 
     camera = Camera(np.asarray(domain, dtype=np.float64), resolution)
     radius = max(1, int(np.ceil(0.5 * spacing * camera.scale)))
-    images = [render_frame(camera, f, radius, f"t = {t:.3f} s") for f, t in zip(frames, times)]
+    rigid_frames = rigid_frames or [[] for _ in frames]
+    images = [render_frame(camera, f, radius, f"t = {t:.3f} s", r) for f, t, r in zip(frames, times, rigid_frames)]
     path = Path(path)
     if path.suffix == ".mp4":
         try:

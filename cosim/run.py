@@ -42,6 +42,7 @@ class Recorder:
         self.frames: list[list[np.ndarray]] = []
         self.times: list[float] = []
         self.energy: list[dict] = []
+        self.rigid_poses: list[list[tuple[np.ndarray, np.ndarray]]] = []
 
     def __call__(self, step_index: int) -> None:
         from cosim.diagnostics import energies
@@ -50,6 +51,8 @@ class Recorder:
         self.frames.append([state["x"][sl].copy() for sl in self.sim.slices.values()])
         self.times.append(step_index * self.sim.frame_dt)
         self.energy.append(energies(self.sim.mpm, state, self.sim.scene.gravity))
+        if self.sim.rigid is not None:
+            self.rigid_poses.append(self.sim.rigid.poses(self.times[-1]))
 
     def wants(self, step_index: int) -> bool:
         """Save after macro step ``step_index`` (1-based)? Every output.every, and the last."""
@@ -64,6 +67,12 @@ class Recorder:
             arrays[f"x_{name}"] = np.stack([f[i] for f in self.frames]).astype(np.float32)
         for key in ("kinetic", "gravity", "strain", "total"):
             arrays[f"energy_{key}"] = np.asarray([e[key] for e in self.energy])
+        rigid = self.sim.rigid
+        if rigid is not None:
+            arrays["rigid_names"] = np.asarray(rigid.names)
+            for b, name in enumerate(rigid.names):
+                arrays[f"rigid_pos_{name}"] = np.stack([poses[b][0] for poses in self.rigid_poses])
+                arrays[f"rigid_rot_{name}"] = np.stack([poses[b][1] for poses in self.rigid_poses])
         np.savez_compressed(out_dir / "trajectory.npz", **arrays)
         if not preview or scene.output.preview == "none":
             return None
@@ -78,8 +87,19 @@ class Recorder:
             spacing,
             scene.output.resolution,
             scene.output.fps,
+            self._rigid_points(),
         )
         return path.name
+
+    def _rigid_points(self) -> list[list[np.ndarray]] | None:
+        """World-space surface points of each rigid body at each saved frame."""
+        rigid = self.sim.rigid
+        if rigid is None:
+            return None
+        from cosim.couplers.sdf import surface_points
+
+        local = [surface_points(g) for g in rigid.grids]
+        return [[p + pts @ R.T for pts, (p, R) in zip(local, poses)] for poses in self.rigid_poses]
 
 
 def run_scene(

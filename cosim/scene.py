@@ -171,6 +171,60 @@ class LossSpec(Strict):
     target: Vec | None = None
 
 
+# ---------------------------------------------------------------- rigid bodies, contact
+class RigidShape(Strict):
+    """A rigid body's shape in its own frame (centred at the body origin; y is the axis of
+    cylinders, capsules and glasses, a glass opens towards +y). ``mesh``: a watertight file."""
+
+    type: Literal["box", "sphere", "cylinder", "capsule", "glass", "ring", "mesh"]
+    size: list[Positive] | None = None  # box: full extents
+    radius: Positive | None = None
+    height: Positive | None = None
+    thickness: Positive | None = None  # glass and ring walls
+    file: str | None = None
+    scale: Positive = 1.0
+
+
+class MotionSegment(Strict):
+    duration: Positive
+    velocity: Vec
+    angular_velocity: float | Vec = 0.0
+
+
+class MotionSpec(Strict):
+    """Prescribed motion (see cosim.engines.kinematic): static, constant, piecewise, shake, waypoints."""
+
+    type: Literal["static", "constant", "piecewise", "shake", "waypoints"] = "static"
+    velocity: Vec | None = None  # constant [m/s]
+    angular_velocity: float | Vec = 0.0  # constant [rad/s], world frame (a number in 2D)
+    segments: list[MotionSegment] = []  # piecewise
+    repeat: bool = False  # piecewise: cycle the segments
+    amplitude: Vec | None = None  # shake [m]
+    frequency: Positive | None = None  # shake [Hz]
+    phase: float = 0.0  # shake [rad]
+    times: list[float] = []  # waypoints [s], starting at 0
+    positions: list[Vec] = []  # waypoints [m], the first one the body's position
+
+
+class RigidBodySpec(Strict):
+    name: str
+    shape: RigidShape
+    position: Vec  # [m] body origin in the world
+    rotation: float | Vec = 0.0  # 2D: angle [rad]; 3D: rotation vector [rad]
+    motion: MotionSpec = MotionSpec()
+    sdf_spacing: Positive | None = None  # [m] default dx / 2
+
+
+class RigidSpec(Strict):
+    bodies: Annotated[list[RigidBodySpec], Field(min_length=1)]
+
+
+class ContactSpec(Strict):
+    model: Literal["grid"] = "grid"
+    friction: Annotated[float, Field(ge=0)] = 0.0  # Coulomb coefficient
+    band: Positive | None = None  # [m] grid model: nodes closer than this are constrained, default dx / 2
+
+
 class GradientSpec(Strict):
     params: list[Literal["x0", "v0", "impulse", "E", "nu"]] = ["v0", "impulse", "E"]
     tolerance: Positive = 1e-4  # relative error allowed by `cosim gradcheck`
@@ -202,6 +256,8 @@ class Scene(Strict):
     steps: Annotated[int, Field(ge=1)] = 100
     time: TimeSpec = TimeSpec()
     mpm: MPMSpec
+    rigid: RigidSpec | None = None
+    contact: ContactSpec = ContactSpec()
     controls: list[ControlSpec] = []
     loss: LossSpec = LossSpec()
     gradient: GradientSpec = GradientSpec()

@@ -176,10 +176,94 @@ def semantic_problems(scene: Scene) -> list[str]:
         if loss.target is None:
             problems.append("loss.target: com_target needs a target point")
     vec("loss.target", loss.target)
+    if scene.rigid is not None:
+        problems += rigid_problems(scene)
     if "impulse" in scene.gradient.params and not scene.controls and "gradient" in scene.model_fields_set:
         problems.append("gradient.params: 'impulse' needs at least one entry under controls")
     if "impulse" in scene.optimize.params and not scene.controls and "optimize" in scene.model_fields_set:
         problems.append("optimize.params: 'impulse' needs at least one entry under controls")
     if scene.steps * scene.time.frame_dt > 1e4 or not math.isfinite(scene.time.frame_dt):
         problems.append("time.frame_dt: steps * frame_dt exceeds 10^4 s; is frame_dt in seconds?")
+    return problems
+
+
+_SHAPE_NEEDS = {
+    "box": ("size",),
+    "sphere": ("radius",),
+    "cylinder": ("radius", "height"),
+    "capsule": ("radius", "height"),
+    "glass": ("radius", "height", "thickness"),
+    "ring": ("radius", "thickness"),
+    "mesh": ("file",),
+}
+
+
+def rigid_problems(scene: Scene) -> list[str]:
+    """Rigid bodies: each shape has its sizes, vectors fit dim, motions are complete."""
+    d = scene.dim
+    problems: list[str] = []
+    names = [b.name for b in scene.rigid.bodies]
+    soft = [b.name for b in scene.mpm.bodies]
+    for i, body in enumerate(scene.rigid.bodies):
+        base = f"rigid.bodies[{i}]"
+        if names.count(body.name) > 1 or body.name in soft:
+            problems.append(f"{base}.name: '{body.name}' is used twice; body names must be unique")
+        shape = body.shape
+        for key in _SHAPE_NEEDS[shape.type]:
+            if getattr(shape, key) is None:
+                problems.append(f"{base}.shape.{key}: required for a {shape.type}")
+        if shape.type == "box" and shape.size is not None and len(shape.size) != d:
+            problems.append(f"{base}.shape.size: must have {d} entries (dim is {d}), got {len(shape.size)}")
+        if shape.type == "ring" and d != 2:
+            problems.append(f"{base}.shape.type: a ring is 2D; in 3D use a glass or a mesh")
+        if shape.type == "mesh":
+            if d != 3:
+                problems.append(f"{base}.shape.type: meshes are 3D; in 2D use box, sphere, capsule, glass or ring")
+            elif shape.file is not None and not (scene.source_dir / shape.file).resolve().is_file():
+                problems.append(f"{base}.shape.file: file not found: {(scene.source_dir / shape.file).resolve()}")
+        if shape.type == "glass" and None not in (shape.radius, shape.thickness, shape.height):
+            if shape.thickness >= min(shape.radius, shape.height):
+                problems.append(f"{base}.shape.thickness: must be below the radius and the height")
+        if len(body.position) != d:
+            problems.append(f"{base}.position: must have {d} entries (dim is {d}), got {len(body.position)}")
+        problems += _rotation_problems(f"{base}.rotation", body.rotation, d)
+        problems += _motion_problems(f"{base}.motion", body.motion, d, body.position)
+    return problems
+
+
+def _rotation_problems(key: str, value, d: int) -> list[str]:
+    if d == 2 and not isinstance(value, (int, float)):
+        return [f"{key}: in 2D an angle in radians (a number)"]
+    if d == 3 and (isinstance(value, (int, float)) and value != 0 or isinstance(value, list) and len(value) != 3):
+        return [f"{key}: in 3D a rotation vector [rx, ry, rz] in radians"]
+    return []
+
+
+def _motion_problems(key: str, m, d: int, position) -> list[str]:
+    problems: list[str] = []
+    vecs = {"velocity": m.velocity, "amplitude": m.amplitude}
+    for name, value in vecs.items():
+        if value is not None and len(value) != d:
+            problems.append(f"{key}.{name}: must have {d} entries (dim is {d}), got {len(value)}")
+    problems += _rotation_problems(f"{key}.angular_velocity", m.angular_velocity, d)
+    if m.type == "constant" and m.velocity is None:
+        problems.append(f"{key}.velocity: required for a constant motion")
+    if m.type == "piecewise":
+        if not m.segments:
+            problems.append(f"{key}.segments: a piecewise motion needs at least one segment")
+        for j, seg in enumerate(m.segments):
+            if len(seg.velocity) != d:
+                problems.append(f"{key}.segments[{j}].velocity: must have {d} entries (dim is {d})")
+            problems += _rotation_problems(f"{key}.segments[{j}].angular_velocity", seg.angular_velocity, d)
+    if m.type == "shake" and (m.amplitude is None or m.frequency is None):
+        problems.append(f"{key}: a shake needs amplitude and frequency")
+    if m.type == "waypoints":
+        if len(m.times) < 2 or len(m.times) != len(m.positions):
+            problems.append(f"{key}: waypoints need as many times as positions, at least two")
+        elif m.times[0] != 0 or any(b <= a for a, b in zip(m.times, m.times[1:])):
+            problems.append(f"{key}.times: must start at 0 and increase")
+        elif any(len(p) != d for p in m.positions):
+            problems.append(f"{key}.positions: each must have {d} entries (dim is {d})")
+        elif max(abs(a - b) for a, b in zip(m.positions[0], position)) > 1e-9:
+            problems.append(f"{key}.positions[0]: must equal the body's position {position}")
     return problems

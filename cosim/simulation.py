@@ -106,6 +106,41 @@ def build_controls(scene: Scene, slices: dict[str, slice], x0: np.ndarray) -> li
     return controls
 
 
+def rotation_matrix(value, dim: int) -> np.ndarray:
+    """A scene rotation (2D angle, 3D rotation vector) as a matrix."""
+    from cosim.engines.kinematic import rotation_about
+
+    if dim == 2:
+        return rotation_about(float(value), 1.0, 2)
+    vec = np.zeros(3) if isinstance(value, (int, float)) else np.asarray(value, dtype=np.float64)
+    return rotation_about(vec, 1.0, 3)
+
+
+def build_motion(spec, dim: int):
+    """A kinematic.Motion from a validated rigid-body spec."""
+    from cosim.engines.kinematic import Motion, Segment
+
+    p0 = np.asarray(spec.position, dtype=np.float64)
+    R0 = rotation_matrix(spec.rotation, dim)
+    m = spec.motion
+
+    def omega(value):
+        return (
+            float(value) if dim == 2 else (np.zeros(3) if isinstance(value, (int, float)) else np.asarray(value, float))
+        )
+
+    if m.type == "static":
+        return Motion("constant", p0, R0, [Segment(math.inf, np.zeros(dim), omega(0.0))])
+    if m.type == "constant":
+        return Motion("constant", p0, R0, [Segment(math.inf, np.asarray(m.velocity, float), omega(m.angular_velocity))])
+    if m.type == "piecewise":
+        segs = [Segment(g.duration, np.asarray(g.velocity, float), omega(g.angular_velocity)) for g in m.segments]
+        return Motion("piecewise", p0, R0, segs, repeat=m.repeat)
+    if m.type == "shake":
+        return Motion("shake", p0, R0, amplitude=np.asarray(m.amplitude, float), frequency=m.frequency, phase=m.phase)
+    return Motion("waypoints", p0, R0, times=np.asarray(m.times, float), positions=np.asarray(m.positions, float))
+
+
 class Simulation:
     """The MPM scene runner. ``requires_grad`` builds gradient buffers and fixes K."""
 
@@ -161,6 +196,28 @@ class Simulation:
         self.total_substeps = 0
         # called as before_step(t0, dt, K) before each engine step: moving boundaries set their states
         self.before_step = None
+        self.rigid = None
+        if scene.rigid is not None:
+            self._build_rigid()
+
+    def _build_rigid(self) -> None:
+        """Kinematic rigid bodies as SDF boundaries under the scene's contact model."""
+        from cosim.couplers.contact import GridContact, RigidBoundaries, kinematic_states
+        from cosim.couplers.sdf import shape_sdf
+
+        scene = self.scene
+        grids, motions = [], []
+        for i, spec in enumerate(scene.rigid.bodies):
+            spacing = spec.sdf_spacing or 0.5 * self.dx
+            grids.append(
+                shape_sdf(spec.shape, scene.dim, spacing, 3 * self.dx, scene.source_dir, f"rigid.bodies[{i}].shape")
+            )
+            motions.append(build_motion(spec, scene.dim))
+        slots = max(scene.time.max_substeps, self.grad_substeps)
+        boundaries = RigidBoundaries(grids, scene.dim, slots, requires_grad=self.requires_grad)
+        GridContact(self.mpm, boundaries, scene.contact.friction, scene.contact.band)
+        self.rigid = RigidScene([b.name for b in scene.rigid.bodies], grids, motions, boundaries)
+        self.before_step = lambda t0, dt, K: boundaries.set_states(*kinematic_states(motions, t0, dt, K))
 
     # ------------------------------------------------------------ time stepping
     def _auto_substeps(self, speed: float) -> int:
@@ -255,6 +312,19 @@ class Simulation:
                     f"step {self.step_index}: body '{body}': {int(out.sum())} particles left the grid domain "
                     f"[0, {domain.tolist()}] m; enable walls (mpm.boundary.type) or enlarge mpm.grid"
                 )
+
+
+@dataclass
+class RigidScene:
+    """The scene's rigid bodies: names, SDF grids, motions and their MPM boundary."""
+
+    names: list[str]
+    grids: list
+    motions: list
+    boundaries: object
+
+    def poses(self, t: float) -> list[tuple[np.ndarray, np.ndarray]]:
+        return [m.pose(t) for m in self.motions]
 
 
 def _wave_speed(body, dim: int) -> float:

@@ -168,3 +168,33 @@ def test_cli_invalid_yaml_exit_2(tmp_path):
     path.write_text("dim: [2\nmpm: {")
     res = run_cli("validate", str(path))
     assert res.returncode == 2 and "not valid YAML" in res.stderr
+
+
+def rigid_scene(body):
+    return scene_dict(rigid={"bodies": [body]})
+
+
+def test_rigid_body_errors_name_the_key():
+    base = {"name": "wall", "shape": {"type": "box", "size": [0.1, 0.2]}, "position": [0.5, 0.5]}
+    assert "rigid.bodies[0].shape.radius: required for a sphere" in error_of(
+        rigid_scene(base | {"shape": {"type": "sphere"}})
+    )
+    assert "rigid.bodies[0].motion.velocity: required for a constant motion" in error_of(
+        rigid_scene(base | {"motion": {"type": "constant"}})
+    )
+    assert "rigid.bodies[0].position: must have 2 entries" in error_of(
+        rigid_scene(base | {"position": [0.5, 0.5, 0.5]})
+    )
+    moved = {"type": "waypoints", "times": [0, 1], "positions": [[0.4, 0.5], [0.6, 0.5]]}
+    assert "motion.positions[0]: must equal the body's position" in error_of(rigid_scene(base | {"motion": moved}))
+    assert "rigid.bodies[0].shape.type: must be one of" in error_of(rigid_scene(base | {"shape": {"type": "torus"}}))
+    ring3d = scene_dict(
+        dim=3,
+        rigid={
+            "bodies": [
+                {"name": "r", "shape": {"type": "ring", "radius": 0.2, "thickness": 0.02}, "position": [0.5, 0.5, 0.5]}
+            ]
+        },
+    )
+    ring3d["mpm"]["bodies"][0]["shape"] = {"type": "box", "center": [0.5, 0.5, 0.5], "size": [0.1, 0.1, 0.1]}
+    assert "a ring is 2D" in error_of(ring3d)

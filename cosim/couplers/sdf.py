@@ -247,6 +247,30 @@ def mesh_sdf(mesh, spacing: float, padding: float, key: str = "mesh", use_cache:
     return grid
 
 
+def shape_sdf(shape, dim: int, spacing: float, padding: float, source_dir: Path, key: str) -> SDFGrid:
+    """The SDF of a validated scene ``RigidShape`` (primitive or mesh file)."""
+    if shape.type == "mesh":
+        import trimesh
+
+        path = (Path(source_dir) / shape.file).resolve()
+        try:
+            mesh = trimesh.load(path, force="mesh")
+        except Exception as exc:  # trimesh raises many kinds for unreadable files
+            raise SceneError(f"{key}.file: cannot read mesh {path}: {exc}") from None
+        mesh.apply_scale(shape.scale)
+        return mesh_sdf(mesh, spacing, padding, key=f"{key}.file ({path.name})")
+    size = {k: getattr(shape, k) for k in ("radius", "height", "thickness") if getattr(shape, k) is not None}
+    if shape.type == "box":
+        size = {"half": 0.5 * np.asarray(shape.size, dtype=np.float64)}
+    return primitive_sdf(shape.type, dim, spacing, padding, **size)
+
+
+def surface_points(grid: SDFGrid) -> np.ndarray:
+    """Body-frame nodes within half a spacing of the surface (for drawing the body)."""
+    nodes = grid.nodes().reshape(-1, grid.dim)
+    return nodes[np.abs(grid.values.ravel()) <= 0.5 * grid.spacing]
+
+
 # ---------------------------------------------------------------- Taichi lookup
 @ti.data_oriented
 class SDFField:
