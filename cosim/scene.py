@@ -220,9 +220,12 @@ class RigidSpec(Strict):
 
 
 class ContactSpec(Strict):
-    model: Literal["grid"] = "grid"
+    """How MPM material meets rigid bodies (see cosim.couplers.contact)."""
+
+    model: Literal["grid", "particle"] = "grid"
     friction: Annotated[float, Field(ge=0)] = 0.0  # Coulomb coefficient
     band: Positive | None = None  # [m] grid model: nodes closer than this are constrained, default dx / 2
+    stiffness: Positive = 2.0e4  # [1/s^2] particle model: penalty force per unit mass and depth
 
 
 class GradientSpec(Strict):

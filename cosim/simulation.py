@@ -202,7 +202,7 @@ class Simulation:
 
     def _build_rigid(self) -> None:
         """Kinematic rigid bodies as SDF boundaries under the scene's contact model."""
-        from cosim.couplers.contact import GridContact, RigidBoundaries, kinematic_states
+        from cosim.couplers.contact import GridContact, ParticlePenalty, RigidBoundaries, kinematic_states
         from cosim.couplers.sdf import shape_sdf
 
         scene = self.scene
@@ -215,7 +215,11 @@ class Simulation:
             motions.append(build_motion(spec, scene.dim))
         slots = max(scene.time.max_substeps, self.grad_substeps)
         boundaries = RigidBoundaries(grids, scene.dim, slots, requires_grad=self.requires_grad)
-        GridContact(self.mpm, boundaries, scene.contact.friction, scene.contact.band)
+        contact = scene.contact
+        if contact.model == "grid":
+            GridContact(self.mpm, boundaries, contact.friction, contact.band)
+        else:
+            ParticlePenalty(self.mpm, boundaries, contact.stiffness, contact.friction)
         self.rigid = RigidScene([b.name for b in scene.rigid.bodies], grids, motions, boundaries)
         self.before_step = lambda t0, dt, K: boundaries.set_states(*kinematic_states(motions, t0, dt, K))
 

@@ -5,7 +5,7 @@ import pytest
 from conftest import make_scene
 
 from cosim.adjoint.tape import StepRecord
-from cosim.couplers.contact import GridContact, RigidBoundaries, kinematic_states
+from cosim.couplers.contact import GridContact, ParticlePenalty, RigidBoundaries, kinematic_states
 from cosim.couplers.sdf import primitive_distance, primitive_sdf
 from cosim.engines.kinematic import constant
 from cosim.simulation import Simulation
@@ -22,10 +22,23 @@ def disc(name, center, radius, velocity, E=3e3):
     }
 
 
+MODELS = ["grid", "particle"]
+
+
 def build(
-    bodies, boxes, motions, friction=0.0, gravity=(0.0, 0.0), walls="none", grad=False, substeps="auto", steps=40
+    bodies,
+    boxes,
+    motions,
+    friction=0.0,
+    gravity=(0.0, 0.0),
+    walls="none",
+    grad=False,
+    substeps="auto",
+    steps=40,
+    model="grid",
 ):
-    """A 2D MPM scene with static or moving rigid boxes (half extents ``boxes``) under the grid model."""
+    """A 2D MPM scene with static or moving rigid boxes (half extents ``boxes``) under a contact model
+    (particle model: stiffness 3e4 / s^2)."""
     scene = make_scene(
         steps=steps,
         time={"frame_dt": 4e-3, "substeps": substeps},
@@ -38,7 +51,10 @@ def build(
         max(scene.time.max_substeps, sim.grad_substeps),
         requires_grad=grad,
     )
-    GridContact(sim.mpm, rb, friction)
+    if model == "grid":
+        GridContact(sim.mpm, rb, friction)
+    else:
+        ParticlePenalty(sim.mpm, rb, 3e4, friction)
     sim.before_step = lambda t0, dt, K: rb.set_states(*kinematic_states(motions, t0, dt, K))
     return sim, rb
 
@@ -47,11 +63,12 @@ def static(center):
     return constant(center, np.eye(2), [0.0, 0.0], 0.0)
 
 
-def test_newtons_third_law_holds_to_round_off():
+@pytest.mark.parametrize("model", MODELS)
+def test_newtons_third_law_holds_to_round_off(model):
     """Impulse on the particles + impulse on the body = 0 in every substep (no gravity, no walls),
     so the particles' momentum change equals minus the summed body impulses, to round-off."""
     half = np.array([0.06, 0.2])
-    sim, rb = build([disc("ball", [0.35, 0.5], 0.08, [2.0, 0.3])], [half], [static([0.6, 0.5])])
+    sim, rb = build([disc("ball", [0.35, 0.5], 0.08, [2.0, 0.3])], [half], [static([0.6, 0.5])], model=model)
     m = sim.mpm.mass[:, None]
     p0 = (m * sim.mpm.state()["v"]).sum(axis=0)
     body_impulse, angular = np.zeros(2), 0.0
@@ -66,7 +83,7 @@ def test_newtons_third_law_holds_to_round_off():
     assert p1[0] < 0.5 * p0[0]  # the ball was stopped or bounced back
 
 
-def slide(friction):
+def slide(friction, model):
     """A block sliding at 1 m/s on a static rigid slab under gravity; its speed after 0.12 s."""
     floor_half = np.array([0.4, 0.05])
     block = {
@@ -75,15 +92,18 @@ def slide(friction):
         "shape": {"type": "box", "center": [0.35, 0.3 + 0.05], "size": [0.12, 0.1]},
         "velocity": [1.0, 0.0],
     }
-    sim, _ = build([block], [floor_half], [static([0.5, 0.25])], friction=friction, gravity=(0.0, -9.81), walls="slip")
+    sim, _ = build(
+        [block], [floor_half], [static([0.5, 0.25])], friction=friction, gravity=(0.0, -9.81), walls="slip", model=model
+    )
     for _ in range(30):
         sim.step()
     return sim.mpm.state()["v"][:, 0].mean()
 
 
-def test_friction_slows_sliding():
+@pytest.mark.parametrize("model", MODELS)
+def test_friction_slows_sliding(model):
     """Coulomb: mu = 0 keeps the block sliding (~1 m/s); mu = 0.5 takes about mu g t = 0.6 m/s off."""
-    free, rough = slide(0.0), slide(0.5)
+    free, rough = slide(0.0, model), slide(0.5, model)
     assert free > 0.9
     assert free - rough > 0.3
 
@@ -99,12 +119,12 @@ def test_thrown_particles_never_end_inside_a_thick_wall():
         assert d.min() >= 0.0
 
 
-@pytest.fixture(scope="module")
-def pushed():
+@pytest.fixture(scope="module", params=MODELS)
+def pushed(request):
     """A box moving right at v_body pushes an elastic disc (float64, fixed substeps, gradients on)."""
     half = np.array([0.05, 0.12])
     ball = disc("ball", [0.5, 0.5], 0.07, [-0.5, 0.1])
-    sim, rb = build([ball], [half], [static([0.36, 0.5])], grad=True, substeps=4, steps=4)
+    sim, rb = build([ball], [half], [static([0.36, 0.5])], grad=True, substeps=4, steps=4, model=request.param)
     return sim, rb, half
 
 

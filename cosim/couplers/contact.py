@@ -1,8 +1,9 @@
 """Contact between MPM material and rigid bodies described by SDFs.
 
 Implemented: the grid contact model (a boundary condition on grid velocities,
-evaluated at grid nodes). The particle-penalty and forecast models of the
-paper plug into the same ``RigidBoundaries`` (body states, SDFs, reactions).
+evaluated at grid nodes) and the particle-penalty model (a spring force on
+particles inside a body, added in P2G). The forecast model of the paper plugs
+into the same ``RigidBoundaries`` (body states, SDFs, reactions).
 
 Conventions (see ``cosim.engines.kinematic``): body b at substep s has
 position ``pos[s, b]`` and rotation ``rot[s, b]`` (body to world), linear
@@ -147,6 +148,61 @@ class GridContact:
 
     def apply_grad(self, g: int, s: int, dt: float) -> None:
         self._apply.grad(g, s, dt)
+
+    def zero_grad(self) -> None:
+        self.output.grad.fill(0)
+        self.bodies.zero_grad()
+
+
+@ti.data_oriented
+class ParticlePenalty:
+    """Particle contact model: a particle at signed distance d < 0 from a body receives
+    the penalty force F = -k m_p d n (``stiffness`` k per unit mass [1/s^2], so the same k
+    suits any particle size), plus Coulomb friction: the tangential velocity relative to
+    the body is reduced by at most mu |F_n| dt / m_p. Added as momentum in P2G."""
+
+    def __init__(self, engine, bodies: RigidBoundaries, stiffness: float, friction: float):
+        self.engine = engine
+        self.bodies = bodies
+        self.stiffness = float(stiffness)
+        self.friction = float(friction)
+        grad = engine.cfg.requires_grad
+        self.output = ti.Vector.field(engine.dim, float, shape=engine.affine.shape, needs_grad=grad)
+        self.body_of = ti.field(ti.i32, shape=engine.n_particles)
+        self.body_of.from_numpy(
+            np.concatenate([np.full(hi - lo, i) for i, (lo, hi) in enumerate(engine.ranges)]).astype(np.int32)
+        )
+        engine.attach_particle_hook(self)
+
+    @ti.kernel
+    def _apply(self, src: ti.i32, g: ti.i32, s: ti.i32, dt: float):
+        e, rb = self.engine, self.bodies
+        for p in range(e.n_particles):
+            x, v = e.x[src, p], e.v[src, p]
+            m = e.p_mass[self.body_of[p]]
+            dp_total = ti.Vector.zero(float, e.dim)
+            for b in ti.static(range(rb.n)):
+                pos, R = rb.pos[s, b], rb.rot[s, b]
+                d, n_body = rb.sdfs[b].distance_normal(R.transpose() @ (x - pos))
+                if d < 0:
+                    n = R @ n_body
+                    jn = -self.stiffness * m * d * dt  # normal impulse, along +n
+                    vc = rb.vel[s, b] + rb.spin(rb.omega[s, b], x - pos)
+                    rel = v - vc
+                    vt = rel - rel.dot(n) * n
+                    vt_norm = ti.sqrt(vt.norm_sqr() + 1e-20)
+                    jt = ti.min(self.friction * jn, m * vt_norm)  # friction impulse, against vt
+                    dp = jn * n - jt * vt / vt_norm
+                    rb.impulse[s, b] -= dp
+                    rb.angular_impulse[s, b] -= rb.moment(x - pos, dp)
+                    dp_total += dp
+            self.output[g, p] = dp_total
+
+    def apply(self, src: int, g: int, s: int, dt: float) -> None:
+        self._apply(src, g, s, dt)
+
+    def apply_grad(self, src: int, g: int, s: int, dt: float) -> None:
+        self._apply.grad(src, g, s, dt)
 
     def zero_grad(self) -> None:
         self.output.grad.fill(0)

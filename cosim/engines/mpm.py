@@ -137,6 +137,7 @@ class MPMEngine:
         self.mass = np.concatenate([np.full(b.n, b.particle_mass) for b in bodies])
         self._serial = bool(config.serial_p2g)
         self._hook = None
+        self._particle_hook = None
         self._grid_out = self.grid_v  # the grid velocities G2P gathers (a hook's output once attached)
         self._slot = 0
         self._token = 0
@@ -202,6 +203,8 @@ class MPMEngine:
             mom = m_p * self.v[src, p]
             if ti.static(self.cfg.has_controls):
                 mom += control_share * self.control[p]
+            if ti.static(self._has_particle_hook()):
+                mom += self._particle_hook.output[g, p]
             for offset in ti.static(ti.grouped(ti.ndrange(*([3] * self.dim)))):
                 dpos = (offset - fx) * self.dx
                 weight = 1.0
@@ -315,6 +318,9 @@ class MPMEngine:
             return 0.0
         return 1e-8 * float(min(b.particle_mass for b in self.bodies))
 
+    def _has_particle_hook(self) -> bool:
+        return self._particle_hook is not None
+
     def _fused_clear(self) -> bool:
         """Forward-only engines without a grid hook clear the grid inside grid_update."""
         return not self.cfg.requires_grad and self._hook is None
@@ -323,11 +329,13 @@ class MPMEngine:
         """The grid copy substep ``src`` uses: its own with gradients, the only one otherwise."""
         return src if self.cfg.requires_grad else 0
 
-    def pre_coupling(self, src: int, dt: float, control_share: float = 0.0) -> None:
-        """Clear the grid and scatter every body onto it (P2G)."""
+    def pre_coupling(self, src: int, s: int, dt: float, control_share: float = 0.0) -> None:
+        """Clear the grid, let the particle hook compute its momenta, scatter every body (P2G)."""
         g = self._grid_index(src)
         if not self._fused_clear():  # else grid_update clears it
             self._clear_grid(g)
+        if self._particle_hook is not None:
+            self._particle_hook.apply(src, g, s, dt)
         for b, (mat, (lo, hi)) in enumerate(zip(self.materials, self.ranges)):
             self._stress(mat, b, lo, hi, src, g, dt)
             self._p2g(self._serial, b, lo, hi, src, g, control_share)
@@ -347,6 +355,18 @@ class MPMEngine:
         self._hook = hook
         self._grid_out = hook.output
 
+    def attach_particle_hook(self, hook) -> None:
+        """Let a contact model add momentum [N s] to particles in P2G (e.g. penalty forces).
+
+        Before each P2G the hook fills ``hook.output[g, p]``; methods
+        ``apply(src, g, s, dt)``, ``apply_grad(src, g, s, dt)``, ``zero_grad()``.
+        """
+        if self._particle_hook is not None:
+            raise ValueError("one particle hook per engine")
+        if self._token > 0:
+            raise ValueError("attach particle hooks before the first step (kernels are specialised on them)")
+        self._particle_hook = hook
+
     def coupling(self, src: int, s: int, dt: float) -> None:
         """Grid update (velocities, gravity, walls), then the contact model's grid hook."""
         g = self._grid_index(src)
@@ -361,7 +381,7 @@ class MPMEngine:
             self._advect(mat, b, lo, hi, src, dst, dt)
 
     def _substep(self, src: int, dst: int, dt: float, control_share: float, s: int) -> None:
-        self.pre_coupling(src, dt, control_share)
+        self.pre_coupling(src, s, dt, control_share)
         self.coupling(src, s, dt)
         self.post_coupling(src, dst, dt)
 
@@ -378,6 +398,8 @@ class MPMEngine:
             lo, hi = self.ranges[b]
             self._p2g.grad(False, b, lo, hi, s, s, control_share)
             self._stress.grad(self.materials[b], b, lo, hi, s, s, dt)
+        if self._particle_hook is not None:
+            self._particle_hook.apply_grad(s, s, s, dt)
 
     # ------------------------------------------------------------ the contract
     def state(self) -> dict[str, np.ndarray]:
@@ -455,8 +477,9 @@ class MPMEngine:
             self._slot = K
         for fld in (self.x, self.v, self.C, self.F, self.grid_mom, self.grid_m, self.grid_v, self.affine):
             fld.grad.fill(0)
-        if self._hook is not None:
-            self._hook.zero_grad()
+        for hook in (self._hook, self._particle_hook):
+            if hook is not None:
+                hook.zero_grad()
         self.E.grad.fill(0)
         self.nu.grad.fill(0)
         if self.control is not None:
