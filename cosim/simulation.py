@@ -202,7 +202,13 @@ class Simulation:
 
     def _build_rigid(self) -> None:
         """Kinematic rigid bodies as SDF boundaries under the scene's contact model."""
-        from cosim.couplers.contact import GridContact, ParticlePenalty, RigidBoundaries, kinematic_states
+        from cosim.couplers.contact import (
+            ForecastContact,
+            GridContact,
+            ParticlePenalty,
+            RigidBoundaries,
+            kinematic_states,
+        )
         from cosim.couplers.sdf import shape_sdf
 
         scene = self.scene
@@ -218,6 +224,8 @@ class Simulation:
         contact = scene.contact
         if contact.model == "grid":
             GridContact(self.mpm, boundaries, contact.friction, contact.band)
+        elif contact.model == "forecast":
+            ForecastContact(self.mpm, boundaries, contact.friction, contact.alpha, contact.threshold, contact.smoothing)
         else:
             ParticlePenalty(self.mpm, boundaries, contact.stiffness, contact.friction)
         self.rigid = RigidScene([b.name for b in scene.rigid.bodies], grids, motions, boundaries)

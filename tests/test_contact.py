@@ -5,7 +5,7 @@ import pytest
 from conftest import make_scene
 
 from cosim.adjoint.tape import StepRecord
-from cosim.couplers.contact import GridContact, ParticlePenalty, RigidBoundaries, kinematic_states
+from cosim.couplers.contact import ForecastContact, GridContact, ParticlePenalty, RigidBoundaries, kinematic_states
 from cosim.couplers.sdf import primitive_distance, primitive_sdf
 from cosim.engines.kinematic import constant
 from cosim.simulation import Simulation
@@ -22,7 +22,7 @@ def disc(name, center, radius, velocity, E=3e3):
     }
 
 
-MODELS = ["grid", "particle"]
+MODELS = ["grid", "particle", "forecast"]
 
 
 def build(
@@ -53,6 +53,8 @@ def build(
     )
     if model == "grid":
         GridContact(sim.mpm, rb, friction)
+    elif model == "forecast":
+        ForecastContact(sim.mpm, rb, friction)
     else:
         ParticlePenalty(sim.mpm, rb, 3e4, friction)
     sim.before_step = lambda t0, dt, K: rb.set_states(*kinematic_states(motions, t0, dt, K))
@@ -108,11 +110,12 @@ def test_friction_slows_sliding(model):
     assert free - rough > 0.3
 
 
-def test_thrown_particles_never_end_inside_a_thick_wall():
+@pytest.mark.parametrize("model", ["grid", "forecast"])
+def test_thrown_particles_never_end_inside_a_thick_wall(model):
     """A disc thrown at 4 m/s (0.5 cells per substep at CFL) into a thick static wall stays out of it."""
     half = np.array([0.1, 0.3])
     center = np.array([0.7, 0.5])
-    sim, _ = build([disc("ball", [0.35, 0.5], 0.06, [4.0, 0.0])], [half], [static(center)])
+    sim, _ = build([disc("ball", [0.35, 0.5], 0.06, [4.0, 0.0])], [half], [static(center)], model=model)
     for _ in range(40):
         sim.step()
         d = primitive_distance("box", sim.mpm.state()["x"] - center, half=half)

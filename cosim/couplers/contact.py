@@ -143,10 +143,10 @@ class GridContact:
                         v = v_new
             self.output[g, I] = v
 
-    def apply(self, g: int, s: int, dt: float) -> None:
+    def apply(self, src: int, g: int, s: int, dt: float) -> None:
         self._apply(g, s, dt)
 
-    def apply_grad(self, g: int, s: int, dt: float) -> None:
+    def apply_grad(self, src: int, g: int, s: int, dt: float) -> None:
         self._apply.grad(g, s, dt)
 
     def zero_grad(self) -> None:
@@ -206,4 +206,165 @@ class ParticlePenalty:
 
     def zero_grad(self) -> None:
         self.output.grad.fill(0)
+        self.bodies.zero_grad()
+
+
+@ti.data_oriented
+class ForecastContact:
+    """Forecast contact model (SoftMAC): look ahead with a G2P of the free grid velocities,
+    fix the particle velocities with BC_p, then take one gradient step on the grid velocities:
+
+        v_init = W^T v_hat
+        v_tgt  = BC_p(v_init)                       (per particle, below)
+        v_g    = v_hat - alpha M_g^-1 W M_p (W^T v_hat - v_tgt)
+
+    Normalisation: the paper writes the step with the bare weights W; we scatter each
+    residual's momentum like P2G and divide by the node mass (M_p, M_g: particle and grid
+    masses), so alpha = 1 moves a node to the mass-weighted mean of its particles' targets
+    whatever the particle density. A node near the surface touched by few particles then
+    gets its full correction (with bare weights it got 0.2 x their weight sum and a disc
+    thrown at 4 m/s entered a thick wall by 0.25 cells; measured). The paper's alpha = 0.2
+    with bare weights equals ours at alpha = 0.2 x sum_p w_ip ~ 0.2 x particles per cell:
+    0.8 in 2D (the default here; 4 particles per cell at spacing dx/2), 1.6 in 3D.
+
+    BC_p for a particle at signed distance d < d_hat from a body, contact velocity v_c:
+    the relative velocity loses its approaching normal part and its tangential part is
+    reduced by Coulomb friction, v_out = v_c + v_t max(0, 1 - mu |v_n| / |v_t|); blended
+    with the input by s = min(exp(-beta d), 1); if x + dt v_out would end inside the body,
+    v_out gains -d_new / dt along the normal there (advect and project).
+
+    The reaction on body b is minus the grid momentum change its particles' residuals cause,
+    alpha sum_p m_p r_p over the particles it constrained, so the third law holds to round-off.
+    """
+
+    def __init__(
+        self,
+        engine,
+        bodies: RigidBoundaries,
+        friction: float,
+        alpha: float = 0.8,
+        threshold: float | None = None,
+        beta: float | None = None,
+    ):
+        self.engine = engine
+        self.bodies = bodies
+        self.friction = float(friction)
+        self.alpha = float(alpha)
+        self.threshold = engine.dx if threshold is None else float(threshold)
+        self.beta = 2.0 / engine.dx if beta is None else float(beta)
+        grad = engine.cfg.requires_grad
+        d = engine.dim
+        per_particle = engine.affine.shape  # (grid copies, particles)
+        self.v_init = ti.Vector.field(d, float, shape=per_particle, needs_grad=grad)
+        self.residual = ti.Vector.field(d, float, shape=per_particle, needs_grad=grad)
+        self.contact_body = ti.field(ti.i32, shape=per_particle)
+        self.correction = ti.Vector.field(d, float, shape=engine.grid_v.shape, needs_grad=grad)
+        self.body_index = ti.field(ti.i32, shape=engine.n_particles)
+        self.body_index.from_numpy(
+            np.concatenate([np.full(hi - lo, i) for i, (lo, hi) in enumerate(engine.ranges)]).astype(np.int32)
+        )
+        self.output = ti.Vector.field(d, float, shape=engine.grid_v.shape, needs_grad=grad)
+        engine.attach_grid_hook(self)
+
+    @ti.kernel
+    def _forecast(self, src: ti.i32, g: ti.i32):
+        """v_init = W^T v_hat (the look-ahead G2P)."""
+        e = self.engine
+        for p in range(e.n_particles):
+            base, fx, w = e._stencil(e.x[src, p])
+            v = ti.Vector.zero(float, e.dim)
+            for offset in ti.static(ti.grouped(ti.ndrange(*([3] * e.dim)))):
+                weight = 1.0
+                for k in ti.static(range(e.dim)):
+                    weight *= w[offset[k]][k]
+                v += weight * e.grid_v[g, base + offset]
+            self.v_init[g, p] = v
+
+    @ti.kernel
+    def _boundary(self, src: ti.i32, g: ti.i32, s: ti.i32, dt: float):
+        """residual = v_init - BC_p(v_init), and which body set it (-1: none)."""
+        e, rb = self.engine, self.bodies
+        for p in range(e.n_particles):
+            x = e.x[src, p]
+            v = self.v_init[g, p]
+            owner = -1
+            for b in ti.static(range(rb.n)):
+                pos, R = rb.pos[s, b], rb.rot[s, b]
+                d, n_body = rb.sdfs[b].distance_normal(R.transpose() @ (x - pos))
+                if d < self.threshold:
+                    n = R @ n_body
+                    vc = rb.vel[s, b] + rb.spin(rb.omega[s, b], x - pos)
+                    rel = v - vc
+                    vn = rel.dot(n)
+                    v_out = v
+                    if vn < 0:
+                        vt = rel - vn * n
+                        vt_norm = ti.sqrt(vt.norm_sqr() + 1e-20)
+                        v_out = vc + ti.max(0.0, 1.0 + self.friction * vn / vt_norm) * vt
+                    smooth = ti.min(ti.exp(-self.beta * d), 1.0)
+                    v_out = smooth * v_out + (1.0 - smooth) * v
+                    x_new = x + dt * v_out
+                    d_new, n_new_body = rb.sdfs[b].distance_normal(R.transpose() @ (x_new - pos))
+                    if d_new < 0:
+                        v_out += (-d_new / dt) * (R @ n_new_body)
+                    v = v_out
+                    owner = b
+            self.residual[g, p] = self.v_init[g, p] - v
+            self.contact_body[g, p] = owner
+
+    @ti.kernel
+    def _scatter(self, src: ti.i32, g: ti.i32, s: ti.i32):
+        """correction = W M_p r, and each body's reaction: the grid momentum its residuals remove."""
+        e, rb = self.engine, self.bodies
+        ti.loop_config(serialize=True)
+        for p in range(e.n_particles):
+            owner = self.contact_body[g, p]
+            if owner >= 0:
+                base, fx, w = e._stencil(e.x[src, p])
+                r = self.residual[g, p]
+                for offset in ti.static(ti.grouped(ti.ndrange(*([3] * e.dim)))):
+                    weight = 1.0
+                    for k in ti.static(range(e.dim)):
+                        weight *= w[offset[k]][k]
+                    node = base + offset
+                    m_p = e.p_mass[self.body_index[p]]
+                    self.correction[g, node] += (weight * m_p) * r
+                    dp = (-self.alpha * weight * m_p) * r  # momentum given to the material
+                    for b in ti.static(range(rb.n)):
+                        if owner == b:
+                            arm = ti.cast(node, float) * e.dx - rb.pos[s, b]
+                            rb.impulse[s, b] -= dp
+                            rb.angular_impulse[s, b] -= rb.moment(arm, dp)
+
+    @ti.kernel
+    def _correct(self, g: ti.i32):
+        e = self.engine
+        for I in ti.grouped(ti.ndrange(*e.nodes)):
+            m = e.grid_m[g, I]
+            v = e.grid_v[g, I]
+            if m > 0:
+                v -= (self.alpha / m) * self.correction[g, I]
+            self.output[g, I] = v
+
+    @ti.kernel
+    def _clear(self, g: ti.i32):
+        for I in ti.grouped(ti.ndrange(*self.engine.nodes)):
+            self.correction[g, I] = ti.Vector.zero(float, self.engine.dim)
+
+    def apply(self, src: int, g: int, s: int, dt: float) -> None:
+        self._clear(g)
+        self._forecast(src, g)
+        self._boundary(src, g, s, dt)
+        self._scatter(src, g, s)
+        self._correct(g)
+
+    def apply_grad(self, src: int, g: int, s: int, dt: float) -> None:
+        self._correct.grad(g)
+        self._scatter.grad(src, g, s)
+        self._boundary.grad(src, g, s, dt)
+        self._forecast.grad(src, g)
+
+    def zero_grad(self) -> None:
+        for fld in (self.v_init, self.residual, self.correction, self.output):
+            fld.grad.fill(0)
         self.bodies.zero_grad()

@@ -345,8 +345,9 @@ class MPMEngine:
 
         The hook reads ``grid_v[g]`` and writes its own ``hook.output`` field of
         the same shape (never in place: the adjoint needs the input), which
-        G2P then gathers from. Methods: ``apply(g, s, dt)`` for substep s of
-        the macro step using grid copy g, ``apply_grad(g, s, dt)``, ``zero_grad()``.
+        G2P then gathers from. Methods: ``apply(src, g, s, dt)`` for substep s
+        of the macro step, particles in slot src, grid copy g;
+        ``apply_grad(src, g, s, dt)``; ``zero_grad()``.
         """
         if self._hook is not None:
             raise ValueError("one grid hook per engine")
@@ -372,7 +373,7 @@ class MPMEngine:
         g = self._grid_index(src)
         self._grid_update(g, dt, self._mass_floor())
         if self._hook is not None:
-            self._hook.apply(g, s, dt)
+            self._hook.apply(src, g, s, dt)
 
     def post_coupling(self, src: int, dst: int, dt: float) -> None:
         """Gather from the grid (G2P), advect and update deformation per body."""
@@ -392,7 +393,7 @@ class MPMEngine:
             self._advect.grad(self.materials[b], b, lo, hi, s, s + 1, dt)
         self._g2p.grad(self._serial, s, s + 1, s, self._grid_out)
         if self._hook is not None:
-            self._hook.apply_grad(s, s, dt)
+            self._hook.apply_grad(s, s, s, dt)
         self._grid_update.grad(s, dt, self._mass_floor())
         for b in reversed(range(len(self.bodies))):
             lo, hi = self.ranges[b]
