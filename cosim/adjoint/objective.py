@@ -68,9 +68,10 @@ class Objective:
         for n in range(sim.steps):
             imp = self._impulse_field(params.get("impulse"), n)
             before = sim.mpm.state() if record else None
+            t0 = sim.step_index * sim.frame_dt
             info = sim.step(imp)
             if record:
-                self.tape.push(StepRecord(before, info.dt, info.substeps, imp, info.token))
+                self.tape.push(StepRecord(before, info.dt, info.substeps, imp, info.token, t0))
             if on_step is not None:
                 on_step(n + 1)
         return sim.mpm.state()
@@ -81,7 +82,7 @@ class Objective:
         value, dstate = self.loss(final)
         if not grad:
             return value, None
-        g = self.tape.backward(self.sim.mpm, dstate)
+        g = self.tape.backward(self.sim.mpm, dstate, self.sim.before_step)
         grads = {"x0": g.state0["x"], "v0": g.state0["v"], **g.params}
         if "impulse" in params:
             grads["impulse"] = np.stack([gi[self.ctrl_index] for gi in g.impulse])

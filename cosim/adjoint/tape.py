@@ -24,6 +24,7 @@ class StepRecord:
     substeps: int
     impulse: np.ndarray | None = None  # (N, d) [N s] per-particle control impulse
     token: int = -1  # the engine's id of this forward step (lets it skip a recompute)
+    time: float = 0.0  # [s] at the start of the step (moving boundaries are restored from it)
 
     def as_dict(self) -> dict:
         return {
@@ -66,13 +67,20 @@ class Tape:
         """Host memory held by the checkpoints [bytes]."""
         return sum(r.nbytes for r in self.records)
 
-    def backward(self, engine, grad_final: dict[str, np.ndarray]) -> Gradients:
-        """Chain rule over the recorded steps: dL/ds^n = dL/ds^{n+1} ds^{n+1}/ds^n."""
+    def backward(self, engine, grad_final: dict[str, np.ndarray], before_step=None) -> Gradients:
+        """Chain rule over the recorded steps: dL/ds^n = dL/ds^{n+1} ds^{n+1}/ds^n.
+
+        ``before_step(t0, dt, K)`` restores a step's moving-boundary states before
+        its vjp recomputes it (the simulation's hook; None without boundaries).
+        """
         grad_state = grad_final
         impulses: list[np.ndarray | None] = [None] * len(self.records)
         params: dict[str, np.ndarray] = {}
         for n in reversed(range(len(self.records))):
-            out = engine.vjp(self.records[n].as_dict(), grad_state)
+            rec = self.records[n]
+            if before_step is not None:
+                before_step(rec.time, rec.dt, rec.substeps)
+            out = engine.vjp(rec.as_dict(), grad_state)
             grad_state = out["state"]
             impulses[n] = out.get("impulse")
             for key in ("E", "nu"):
