@@ -155,6 +155,10 @@ def cmd_optimize(args) -> int:
 
 
 def cmd_bench(args) -> int:
+    if args.what == "contact":
+        from cosim.bench_contact import run_contact_bench
+
+        return run_contact_bench(Path(args.out), quick=args.quick)
     from cosim.bench import run_bench
 
     return run_bench(args.what, Path(args.out), quick=args.quick)
@@ -243,7 +247,7 @@ def make_parser() -> argparse.ArgumentParser:
     o.set_defaults(func=cmd_optimize)
 
     b = sub.add_parser("bench", help="benchmarks: throughput, backward/forward ratio, memory")
-    b.add_argument("what", choices=["mpm"])
+    b.add_argument("what", choices=["mpm", "contact"])
     b.add_argument("--out", default="out/bench", help="folder for the CSV")
     b.add_argument("--quick", action="store_true", help="fewer substeps (a smoke run)")
     b.set_defaults(func=cmd_bench)
