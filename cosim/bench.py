@@ -122,7 +122,8 @@ def run_bench(what: str, out_dir: Path, quick: bool = False) -> int:
         writer.writerows(rows)
     print(f"\nMPM benchmark on {hardware_line()}; {substeps} substeps x {macro} macro steps, elastic block, dt 1e-4 s")
     print(
-        f"{'dim':>3} {'precision':>9} {'grid':>6} {'particles':>9} {'fwd M/s':>8} {'f+b M/s':>8} {'bwd/fwd':>7} {'peak MiB':>8} {'compile s':>9}"
+        f"{'dim':>3} {'precision':>9} {'grid':>6} {'particles':>9} {'fwd M/s':>8} {'f+b M/s':>8} "
+        f"{'bwd/fwd':>7} {'peak MiB':>8} {'compile s':>9}"
     )
     for r in rows:
         print(

@@ -64,7 +64,8 @@ def cmd_validate(args) -> int:
     bodies = build_bodies(scene)  # also checks meshes and that bodies fit the grid
     n = sum(b.n for b in bodies)
     print(
-        f"{args.scene}: valid ({scene.dim}D, {len(bodies)} bodies, {n} particles, grid {scene.cells}, dx {scene.dx:g} m)"
+        f"{args.scene}: valid ({scene.dim}D, {len(bodies)} bodies, {n} particles, "
+        f"grid {scene.cells}, dx {scene.dx:g} m)"
     )
     return 0
 
