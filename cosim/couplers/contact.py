@@ -75,6 +75,21 @@ class RigidBoundaries:
         return out
 
     @ti.func
+    def frictional_bc(self, v, x, n, s, b, friction):
+        """Velocity v at x after contact with body b (outward normal n): if approaching, the
+        relative velocity loses its normal part and its tangential part shrinks by Coulomb
+        friction, v_c + v_t max(0, 1 - mu |v_n| / |v_t|); separating velocities are kept."""
+        vc = self.vel[s, b] + self.spin(self.omega[s, b], x - self.pos[s, b])
+        rel = v - vc
+        vn = rel.dot(n)
+        out = v
+        if vn < 0:
+            vt = rel - vn * n
+            vt_norm = ti.sqrt(vt.norm_sqr() + 1e-20)
+            out = vc + ti.max(0.0, 1.0 + friction * vn / vt_norm) * vt
+        return out
+
+    @ti.func
     def moment(self, r, f):
         """r x f, as a 1-vector in 2D."""
         out = ti.Vector.zero(float, self.wdim)
@@ -129,19 +144,11 @@ class GridContact:
                     p, R = rb.pos[s, b], rb.rot[s, b]
                     d, n_body = rb.sdfs[b].distance_normal(R.transpose() @ (xi - p))
                     if d < self.band:
-                        n = R @ n_body
-                        vc = rb.vel[s, b] + rb.spin(rb.omega[s, b], xi - p)
-                        rel = v - vc
-                        vn = rel.dot(n)
-                        if vn < 0:
-                            vt = rel - vn * n
-                            vt_norm = ti.sqrt(vt.norm_sqr() + 1e-20)
-                            keep = ti.max(0.0, 1.0 + self.friction * vn / vt_norm)
-                            v_new = vc + keep * vt
-                            dp = m * (v_new - v)  # momentum given to the material
-                            rb.impulse[s, b] -= dp
-                            rb.angular_impulse[s, b] -= rb.moment(xi - p, dp)
-                            v = v_new
+                        v_new = rb.frictional_bc(v, xi, R @ n_body, s, b, self.friction)
+                        dp = m * (v_new - v)  # momentum given to the material
+                        rb.impulse[s, b] -= dp
+                        rb.angular_impulse[s, b] -= rb.moment(xi - p, dp)
+                        v = v_new
             self.output[g, I] = v
 
     def apply(self, src: int, g: int, s: int, dt: float) -> None:
@@ -169,10 +176,6 @@ class ParticlePenalty:
         self.friction = float(friction)
         grad = engine.cfg.requires_grad
         self.output = ti.Vector.field(engine.dim, float, shape=engine.affine.shape, needs_grad=grad)
-        self.body_of = ti.field(ti.i32, shape=engine.n_particles)
-        self.body_of.from_numpy(
-            np.concatenate([np.full(hi - lo, i) for i, (lo, hi) in enumerate(engine.ranges)]).astype(np.int32)
-        )
         engine.attach_particle_hook(self)
 
     @ti.kernel
@@ -180,7 +183,7 @@ class ParticlePenalty:
         e, rb = self.engine, self.bodies
         for p in range(e.n_particles):
             x, v = e.x[src, p], e.v[src, p]
-            m = e.p_mass[self.body_of[p]]
+            m = e.mass_of(p)
             dp_total = ti.Vector.zero(float, e.dim)
             for b in ti.static(range(rb.n)):
                 pos, R = rb.pos[s, b], rb.rot[s, b]
@@ -260,10 +263,6 @@ class ForecastContact:
         self.residual = ti.Vector.field(d, float, shape=per_particle, needs_grad=grad)
         self.contact_body = ti.field(ti.i32, shape=per_particle)
         self.correction = ti.Vector.field(d, float, shape=engine.grid_v.shape, needs_grad=grad)
-        self.body_index = ti.field(ti.i32, shape=engine.n_particles)
-        self.body_index.from_numpy(
-            np.concatenate([np.full(hi - lo, i) for i, (lo, hi) in enumerate(engine.ranges)]).astype(np.int32)
-        )
         self.output = ti.Vector.field(d, float, shape=engine.grid_v.shape, needs_grad=grad)
         # benchmarks: the objective after / before the gradient step, per substep (a host sync each)
         self.track_objective = False
@@ -282,9 +281,7 @@ class ForecastContact:
             base, fx, w = e._stencil(x)
             v_init = ti.Vector.zero(float, e.dim)
             for offset in ti.static(ti.grouped(ti.ndrange(*([3] * e.dim)))):
-                weight = 1.0
-                for k in ti.static(range(e.dim)):
-                    weight *= w[offset[k]][k]
+                weight = e.stencil_weight(w, offset)
                 v_init += weight * e.grid_v[g, base + offset]
             self.v_init[g, p] = v_init
             v = v_init
@@ -293,15 +290,7 @@ class ForecastContact:
                 pos, R = rb.pos[s, b], rb.rot[s, b]
                 d, n_body = rb.sdfs[b].distance_normal(R.transpose() @ (x - pos))
                 if d < self.threshold:
-                    n = R @ n_body
-                    vc = rb.vel[s, b] + rb.spin(rb.omega[s, b], x - pos)
-                    rel = v - vc
-                    vn = rel.dot(n)
-                    v_out = v
-                    if vn < 0:
-                        vt = rel - vn * n
-                        vt_norm = ti.sqrt(vt.norm_sqr() + 1e-20)
-                        v_out = vc + ti.max(0.0, 1.0 + self.friction * vn / vt_norm) * vt
+                    v_out = rb.frictional_bc(v, x, R @ n_body, s, b, self.friction)
                     smooth = ti.min(ti.exp(-self.beta * d), 1.0)
                     v_out = smooth * v_out + (1.0 - smooth) * v
                     x_new = x + dt * v_out
@@ -314,11 +303,9 @@ class ForecastContact:
             self.residual[g, p] = r
             self.contact_body[g, p] = owner
             if owner >= 0:  # correction += W M_p r; the owner's reaction is the momentum removed
-                m_p = e.p_mass[self.body_index[p]]
+                m_p = e.mass_of(p)
                 for offset in ti.static(ti.grouped(ti.ndrange(*([3] * e.dim)))):
-                    weight = 1.0
-                    for k in ti.static(range(e.dim)):
-                        weight *= w[offset[k]][k]
+                    weight = e.stencil_weight(w, offset)
                     node = base + offset
                     self.correction[g, node] += (weight * m_p) * r
                     dp = (-self.alpha * weight * m_p) * r  # momentum given to the material
@@ -350,9 +337,7 @@ class ForecastContact:
                 base, fx, w = e._stencil(e.x[src, p])
                 v = ti.Vector.zero(float, e.dim)
                 for offset in ti.static(ti.grouped(ti.ndrange(*([3] * e.dim)))):
-                    weight = 1.0
-                    for k in ti.static(range(e.dim)):
-                        weight *= w[offset[k]][k]
+                    weight = e.stencil_weight(w, offset)
                     v += weight * self.output[g, base + offset]
                 target = self.v_init[g, p] - self.residual[g, p]
                 before += self.residual[g, p].norm_sqr()

@@ -113,6 +113,7 @@ class MPMEngine:
         self.viscosity = ti.field(float, shape=nb)
         self.p_mass = ti.field(float, shape=nb)
         self.p_vol = ti.field(float, shape=nb)
+        self.body_id = ti.field(ti.i32, shape=n)  # which body each particle belongs to
         # Grid and per-particle stress scratch: one copy per substep with
         # gradients (the adjoint reads them back instead of recomputing P2G),
         # one copy otherwise. g below is that copy's index.
@@ -135,6 +136,7 @@ class MPMEngine:
         self.p_mass.from_numpy(self._real([b.particle_mass for b in bodies]))
         self.p_vol.from_numpy(self._real([b.particle_volume for b in bodies]))
         self.mass = np.concatenate([np.full(b.n, b.particle_mass) for b in bodies])
+        self.body_id.from_numpy(np.concatenate([np.full(b.n, i, dtype=np.int32) for i, b in enumerate(bodies)]))
         self._serial = bool(config.serial_p2g)
         self._hook = None
         self._particle_hook = None
@@ -167,6 +169,19 @@ class MPMEngine:
         fx = xp * self.inv_dx - ti.cast(base, float)
         w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
         return base, fx, w
+
+    @ti.func
+    def stencil_weight(self, w: ti.template(), offset: ti.template()):
+        """Product of the per-axis B-spline weights of stencil node ``offset`` (both compile-time)."""
+        weight = 1.0
+        for k in ti.static(range(self.dim)):
+            weight *= w[offset[k]][k]
+        return weight
+
+    @ti.func
+    def mass_of(self, p):
+        """Mass [kg] of particle p."""
+        return self.p_mass[self.body_id[p]]
 
     @ti.func
     def _lame(self, b):
@@ -207,9 +222,7 @@ class MPMEngine:
                 mom += self._particle_hook.output[g, p]
             for offset in ti.static(ti.grouped(ti.ndrange(*([3] * self.dim)))):
                 dpos = (offset - fx) * self.dx
-                weight = 1.0
-                for k in ti.static(range(self.dim)):
-                    weight *= w[offset[k]][k]
+                weight = self.stencil_weight(w, offset)
                 self.grid_mom[g, base + offset] += weight * (mom + affine @ dpos)
                 self.grid_m[g, base + offset] += weight * m_p
 
@@ -252,9 +265,7 @@ class MPMEngine:
             new_C = ti.Matrix.zero(float, self.dim, self.dim)
             for offset in ti.static(ti.grouped(ti.ndrange(*([3] * self.dim)))):
                 dpos = offset - fx
-                weight = 1.0
-                for k in ti.static(range(self.dim)):
-                    weight *= w[offset[k]][k]
+                weight = self.stencil_weight(w, offset)
                 node_v = grid_vel[g, base + offset]
                 new_v += weight * node_v
                 new_C += (4.0 * self.inv_dx * weight) * node_v.outer_product(dpos)
