@@ -53,6 +53,9 @@ def cmd_run(args) -> int:
         f"{m['wall_time_s']:.2f} s ({m['particle_substeps_per_s'] / 1e6:.2f} M particle-substeps/s), "
         f"max CFL {m['max_cfl']:.3f}"
     )
+    if "particles_inside_rigid" in m:
+        inside = ", ".join(f"{k}: {v}" for k, v in m["particles_inside_rigid"].items())
+        print(f"contact model {m['contact_model']}: particles inside rigid bodies at the end: {inside}")
     print(f"wrote {out}/trajectory.npz, {out}/metrics.json" + (f", {out}/{m['preview']}" if "preview" in m else ""))
     return 0
 

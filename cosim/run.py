@@ -150,6 +150,11 @@ def run_scene(
         "energy_initial": recorder.energy[0],
         "energy_final": recorder.energy[-1],
     }
+    if sim.rigid is not None:
+        metrics["contact_model"] = scene.contact.model
+        metrics["particles_inside_rigid"] = sim.rigid.particles_inside(
+            sim.mpm.state()["x"], sim.step_index * sim.frame_dt
+        )
     name = recorder.write(out_dir, preview)
     if name:
         metrics["preview"] = name

@@ -338,6 +338,14 @@ class RigidScene:
     def poses(self, t: float) -> list[tuple[np.ndarray, np.ndarray]]:
         return [m.pose(t) for m in self.motions]
 
+    def particles_inside(self, x: np.ndarray, t: float) -> dict[str, int]:
+        """How many particles sit inside each body (signed distance < 0) at time t."""
+        out = {}
+        for name, grid, (p, R) in zip(self.names, self.grids, self.poses(t)):
+            d, _ = grid.sample((x - p) @ R)  # world to body frame: R^T (x - p)
+            out[name] = int(np.sum(d < 0))
+        return out
+
 
 def _wave_speed(body, dim: int) -> float:
     from cosim.engines.materials import wave_speed

@@ -238,3 +238,24 @@ def test_objective_gradients_through_a_moving_container_scene(model):
     assert np.abs(impulse).max() > 0  # the last step touched the wall
     for r in results:
         assert r.relative_error < 1e-5, r
+
+
+def test_particles_inside_counts_against_the_moved_and_rotated_body():
+    """The run's penetration report: points inside a rotated, moved box per its analytic SDF."""
+    import math
+
+    from cosim.engines.kinematic import constant as const_motion
+    from cosim.simulation import RigidScene
+
+    half = np.array([0.1, 0.05])
+    grid = primitive_sdf("box", 2, DX / 4, 2 * DX, half=half)
+    motion = const_motion([0.5, 0.5], np.eye(2), [0.1, 0.0], math.pi / 2)
+    scene = RigidScene(["lid"], [grid], [motion], None)
+    t = 0.5  # rotated by 45 degrees, moved 5 cm right
+    p, R = motion.pose(t)
+    pts = np.random.default_rng(3).uniform(0.3, 0.7, size=(4000, 2))
+    exact = primitive_distance("box", (pts - p) @ R, half=half) < -0.5 * DX  # clearly inside
+    outside = primitive_distance("box", (pts - p) @ R, half=half) > 0.5 * DX
+    count = scene.particles_inside(pts, t)["lid"]
+    assert exact.sum() > 200
+    assert exact.sum() <= count <= len(pts) - outside.sum()
