@@ -151,6 +151,10 @@ class GridContact:
                         v = v_new
             self.output[g, I] = v
 
+    @ti.func
+    def velocity(self, g, I):
+        return self.output[g, I]
+
     def apply(self, src: int, g: int, s: int, dt: float) -> None:
         self._apply(g, s, dt)
 
@@ -263,7 +267,7 @@ class ForecastContact:
         self.residual = ti.Vector.field(d, float, shape=per_particle, needs_grad=grad)
         self.contact_body = ti.field(ti.i32, shape=per_particle)
         self.correction = ti.Vector.field(d, float, shape=engine.grid_v.shape, needs_grad=grad)
-        self.output = ti.Vector.field(d, float, shape=engine.grid_v.shape, needs_grad=grad)
+        self.scratch = [self.correction]  # zeroed by the engine with the grid each substep
         # benchmarks: the objective after / before the gradient step, per substep (a host sync each)
         self.track_objective = False
         self.objective_ratios: list[float] = []
@@ -315,17 +319,15 @@ class ForecastContact:
                             rb.impulse[s, b] -= dp
                             rb.angular_impulse[s, b] -= rb.moment(arm, dp)
 
-    @ti.kernel
-    def _correct(self, g: ti.i32):
+    @ti.func
+    def velocity(self, g, I):
+        """v_g = v_hat - alpha correction / m, evaluated where G2P gathers it (no extra pass)."""
         e = self.engine
-        for I in ti.grouped(ti.ndrange(*e.nodes)):
-            m = e.grid_m[g, I]
-            v = e.grid_v[g, I]
-            if m > 0:
-                v -= (self.alpha / m) * self.correction[g, I]
-            self.output[g, I] = v
-            if ti.static(not e.cfg.requires_grad):  # forward-only: clear for the next substep here
-                self.correction[g, I] = ti.Vector.zero(float, e.dim)
+        v = e.grid_v[g, I]
+        m = e.grid_m[g, I]
+        if m > 0:
+            v -= (self.alpha / m) * self.correction[g, I]
+        return v
 
     @ti.kernel
     def _objective(self, src: ti.i32, g: ti.i32) -> ti.types.vector(2, float):
@@ -338,32 +340,23 @@ class ForecastContact:
                 v = ti.Vector.zero(float, e.dim)
                 for offset in ti.static(ti.grouped(ti.ndrange(*([3] * e.dim)))):
                     weight = e.stencil_weight(w, offset)
-                    v += weight * self.output[g, base + offset]
+                    v += weight * self.velocity(g, base + offset)
                 target = self.v_init[g, p] - self.residual[g, p]
                 before += self.residual[g, p].norm_sqr()
                 after += (v - target).norm_sqr()
         return ti.Vector([before, after])
 
-    @ti.kernel
-    def _clear(self, g: ti.i32):
-        for I in ti.grouped(ti.ndrange(*self.engine.nodes)):
-            self.correction[g, I] = ti.Vector.zero(float, self.engine.dim)
-
     def apply(self, src: int, g: int, s: int, dt: float) -> None:
-        if self.engine.cfg.requires_grad:  # else _correct leaves it cleared
-            self._clear(g)
         self._forecast(src, g, s, dt)
-        self._correct(g)
         if self.track_objective:
             before, after = self._objective(src, g)
             if before > 0:
                 self.objective_ratios.append(after / before)
 
     def apply_grad(self, src: int, g: int, s: int, dt: float) -> None:
-        self._correct.grad(g)
         self._forecast.grad(src, g, s, dt)
 
     def zero_grad(self) -> None:
-        for fld in (self.v_init, self.residual, self.correction, self.output):
+        for fld in (self.v_init, self.residual, self.correction):
             fld.grad.fill(0)
         self.bodies.zero_grad()

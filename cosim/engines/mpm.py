@@ -140,7 +140,7 @@ class MPMEngine:
         self._serial = bool(config.serial_p2g)
         self._hook = None
         self._particle_hook = None
-        self._grid_out = self.grid_v  # the grid velocities G2P gathers (a hook's output once attached)
+        self._grid_out = self  # what G2P gathers velocities from (``velocity(g, I)``): a hook once attached
         self._slot = 0
         self._token = 0
         self._resident = -1  # token of the step whose substeps fill the slots
@@ -194,6 +194,13 @@ class MPMEngine:
             self.grid_mom[g, I] = ti.Vector.zero(float, self.dim)
             self.grid_m[g, I] = 0.0
             self.grid_v[g, I] = ti.Vector.zero(float, self.dim)
+            for fld in ti.static(self._hook_scratch()):
+                fld[g, I] = ti.Vector.zero(float, self.dim)
+
+    @ti.func
+    def velocity(self, g, I):
+        """Grid velocity G2P gathers at node I of grid copy g (a grid hook may supply its own)."""
+        return self.grid_v[g, I]
 
     @ti.kernel
     def _stress(self, mat: ti.template(), b: ti.i32, start: ti.i32, end: ti.i32, src: ti.i32, g: ti.i32, dt: float):
@@ -251,7 +258,7 @@ class MPMEngine:
                 self.grid_m[g, I] = 0.0
 
     @ti.kernel
-    def _g2p(self, serial: ti.template(), src: ti.i32, dst: ti.i32, g: ti.i32, grid_vel: ti.template()):
+    def _g2p(self, serial: ti.template(), src: ti.i32, dst: ti.i32, g: ti.i32, source: ti.template()):
         """Gather velocity and affine field from the grid into slot ``dst``.
 
         A parallel gather; its adjoint scatters onto the grid, so it runs with
@@ -266,7 +273,7 @@ class MPMEngine:
             for offset in ti.static(ti.grouped(ti.ndrange(*([3] * self.dim)))):
                 dpos = offset - fx
                 weight = self.stencil_weight(w, offset)
-                node_v = grid_vel[g, base + offset]
+                node_v = source.velocity(g, base + offset)
                 new_v += weight * node_v
                 new_C += (4.0 * self.inv_dx * weight) * node_v.outer_product(dpos)
             self.v[dst, p] = new_v
@@ -329,6 +336,10 @@ class MPMEngine:
             return 0.0
         return 1e-8 * float(min(b.particle_mass for b in self.bodies))
 
+    def _hook_scratch(self) -> list:
+        """Grid-shaped vector fields of the grid hook that the grid clear zeroes each substep."""
+        return list(getattr(self._hook, "scratch", ())) if self._hook is not None else []
+
     def _has_particle_hook(self) -> bool:
         return self._particle_hook is not None
 
@@ -354,18 +365,19 @@ class MPMEngine:
     def attach_grid_hook(self, hook) -> None:
         """Let a contact model rewrite grid velocities after the grid update.
 
-        The hook reads ``grid_v[g]`` and writes its own ``hook.output`` field of
-        the same shape (never in place: the adjoint needs the input), which
-        G2P then gathers from. Methods: ``apply(src, g, s, dt)`` for substep s
-        of the macro step, particles in slot src, grid copy g;
-        ``apply_grad(src, g, s, dt)``; ``zero_grad()``.
+        The hook reads ``grid_v[g]`` and never writes it (the adjoint needs
+        the input); G2P gathers from the hook's ``@ti.func velocity(g, I)``.
+        Fields listed in ``hook.scratch`` (grid-shaped vectors) are zeroed with
+        the grid at the start of each substep. Methods: ``apply(src, g, s,
+        dt)`` for substep s of the macro step, particles in slot src, grid
+        copy g; ``apply_grad(src, g, s, dt)``; ``zero_grad()``.
         """
         if self._hook is not None:
             raise ValueError("one grid hook per engine")
         if self._token > 0:
             raise ValueError("attach grid hooks before the first step (kernels are specialised on them)")
         self._hook = hook
-        self._grid_out = hook.output
+        self._grid_out = hook
 
     def attach_particle_hook(self, hook) -> None:
         """Let a contact model add momentum [N s] to particles in P2G (e.g. penalty forces).
