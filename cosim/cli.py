@@ -46,6 +46,12 @@ def cmd_run(args) -> int:
     from cosim.run import run_scene
 
     scene = _load(args)
+    if args.contact:
+        if scene.rigid is None:
+            from cosim.errors import InputError
+
+            raise InputError(f"--contact {args.contact}: the scene has no rigid bodies (no 'rigid:' section)")
+        scene.contact.model = args.contact
     out = Path(args.out or f"out/{scene.name}")
     m = run_scene(scene, out, steps=args.steps, progress=not args.quiet)
     print(
@@ -229,6 +235,7 @@ def make_parser() -> argparse.ArgumentParser:
     r.add_argument("--out", help="output folder (default: out/SCENE_NAME)")
     r.add_argument("--steps", type=positive_int, help="macro steps (default: the scene's)")
     r.add_argument("--quiet", action="store_true", help="no progress bar")
+    r.add_argument("--contact", choices=["grid", "particle", "forecast"], help="override the scene's contact model")
     r.set_defaults(func=cmd_run)
 
     v = sub.add_parser("validate", help="check a scene file and report its size")

@@ -102,3 +102,15 @@ def test_render_rerenders_a_trajectory_and_rejects_a_missing_one(tmp_path):
     assert ok.returncode == 0 and (tmp_path / "again.gif").stat().st_size > 1000
     bad = run_cli("render", "elastic_bounce_2d", str(tmp_path / "nope.npz"), str(tmp_path / "x.gif"))
     assert bad.returncode == 2 and "trajectory file not found" in bad.stderr and "Traceback" not in bad.stderr
+
+
+def test_run_contact_override_reports_particles_inside_rigid_bodies(tmp_path):
+    res = run_cli(
+        "run", "shake_container_2d", "--contact", "forecast", "--steps", "3", "--out", str(tmp_path), "--quiet"
+    )
+    assert res.returncode == 0, res.stderr
+    assert "contact model forecast: particles inside rigid bodies at the end: container:" in res.stdout
+    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    assert metrics["contact_model"] == "forecast" and metrics["particles_inside_rigid"]["container"] >= 0
+    bad = run_cli("run", "elastic_bounce_2d", "--contact", "grid", "--steps", "2", "--out", str(tmp_path / "b"))
+    assert bad.returncode == 2 and "no rigid bodies" in bad.stderr
