@@ -193,7 +193,6 @@ class Simulation:
         self.controls = build_controls(scene, self.slices, self.mpm.state()["x"])
         self.step_index = 0
         self.max_cfl = 0.0
-        self.total_substeps = 0
         # called as before_step(t0, dt, K) before each engine step: moving boundaries set their states
         self.before_step = None
         self.rigid = None
@@ -286,7 +285,6 @@ class Simulation:
             K *= 2
         self._check_domain(after)
         self.max_cfl = max(self.max_cfl, cfl)
-        self.total_substeps += K
         self.step_index += 1
         return info
 

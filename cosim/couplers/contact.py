@@ -38,7 +38,6 @@ class RigidBoundaries:
         self.omega = ti.Vector.field(self.wdim, float, shape=shape, needs_grad=grad)
         self.impulse = ti.Vector.field(dim, float, shape=shape, needs_grad=grad)
         self.angular_impulse = ti.Vector.field(self.wdim, float, shape=shape, needs_grad=grad)
-        self.max_substeps = max_substeps
         self.real = np.float64 if self.pos.dtype == ti.f64 else np.float32
 
     def set_states(self, pos: np.ndarray, rot: np.ndarray, vel: np.ndarray, omega: np.ndarray) -> None:

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 import taichi as ti
 
-from cosim.engines.materials import MATERIALS, lame_parameters, wave_speed
+from cosim.engines.materials import MATERIALS, lame_parameters
 
 
 @dataclass
@@ -532,10 +532,6 @@ class MPMEngine:
 
     def body_slices(self) -> dict[str, slice]:
         return {b.name: slice(lo, hi) for b, (lo, hi) in zip(self.bodies, self.ranges)}
-
-    def max_wave_speed(self) -> float:
-        """Largest P-wave speed of the bodies [m/s] (liquids: the bulk wave)."""
-        return max(wave_speed(b.E, b.nu, b.density, self.dim) for b in self.bodies)
 
     def lame(self, b: int) -> tuple[float, float]:
         return lame_parameters(self.bodies[b].E, self.bodies[b].nu, self.dim)
