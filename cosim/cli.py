@@ -62,6 +62,9 @@ def cmd_run(args) -> int:
     if "particles_inside_rigid" in m:
         inside = ", ".join(f"{k}: {v}" for k, v in m["particles_inside_rigid"].items())
         print(f"contact model {m['contact_model']}: particles inside rigid bodies at the end: {inside}")
+    if "particles_held" in m:
+        held = ", ".join(f"{k}: {v}" for k, v in m["particles_held"].items())
+        print(f"particles held by containers: {held}; elsewhere (spilled): {m['particles_elsewhere']}")
     print(f"wrote {out}/trajectory.npz, {out}/metrics.json" + (f", {out}/{m['preview']}" if "preview" in m else ""))
     return 0
 
@@ -168,7 +171,7 @@ def cmd_bench(args) -> int:
     if args.what == "contact":
         from cosim.bench_contact import run_contact_bench
 
-        return run_contact_bench(Path(args.out), quick=args.quick)
+        return run_contact_bench(Path(args.out), quick=args.quick, repeat=args.repeat)
     from cosim.bench import run_bench
 
     return run_bench(args.what, Path(args.out), quick=args.quick)
@@ -261,6 +264,7 @@ def make_parser() -> argparse.ArgumentParser:
     b.add_argument("what", choices=["mpm", "contact"])
     b.add_argument("--out", default="out/bench", help="folder for the CSV")
     b.add_argument("--quick", action="store_true", help="fewer substeps (a smoke run)")
+    b.add_argument("--repeat", type=positive_int, default=3, help="contact: repetitions; times are medians")
     b.set_defaults(func=cmd_bench)
 
     rd = sub.add_parser("render", help="render a saved trajectory.npz to a GIF/MP4")

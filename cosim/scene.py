@@ -225,7 +225,7 @@ class ContactSpec(Strict):
     model: Literal["grid", "particle", "forecast"] = "grid"
     friction: Annotated[float, Field(ge=0)] = 0.0  # Coulomb coefficient
     band: Positive | None = None  # [m] grid model: nodes closer than this are constrained, default dx / 2
-    stiffness: Positive = 2.0e4  # [1/s^2] particle model: penalty force per unit mass and depth
+    stiffness: Positive = 600.0  # particle model: push one cell deep, in units of g (see ParticlePenalty)
     alpha: Annotated[float, Field(gt=0, le=2)] = 0.8  # forecast: gradient step (mass-normalised)
     threshold: Positive | None = None  # [m] forecast: contact distance d_hat, default dx
     smoothing: Positive | None = None  # [1/m] forecast: beta of s = min(exp(-beta d), 1), default 2 / dx

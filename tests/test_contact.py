@@ -1,5 +1,7 @@
 """The grid contact model against rigid SDF bodies: third law, friction, no penetration, adjoint."""
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 from conftest import make_scene
@@ -38,7 +40,7 @@ def build(
     model="grid",
 ):
     """A 2D MPM scene with static or moving rigid boxes (half extents ``boxes``) under a contact model
-    (particle model: stiffness 3e4 / s^2)."""
+    (particle model: stiffness 100, i.e. 3.1e4 / s^2 at dx = 1/32)."""
     scene = make_scene(
         steps=steps,
         time={"frame_dt": 4e-3, "substeps": substeps},
@@ -56,7 +58,7 @@ def build(
     elif model == "forecast":
         ForecastContact(sim.mpm, rb, friction)
     else:
-        ParticlePenalty(sim.mpm, rb, 3e4, friction)
+        ParticlePenalty(sim.mpm, rb, 100.0, friction)
     sim.before_step = lambda t0, dt, K: rb.set_states(*kinematic_states(motions, t0, dt, K))
     return sim, rb
 
@@ -230,7 +232,7 @@ def test_objective_gradients_through_a_moving_container_scene(model):
                 }
             ]
         },
-        contact={"model": model, "friction": 0.2, "stiffness": 3e4},
+        contact={"model": model, "friction": 0.2, "stiffness": 100.0},
     )
     obj = Objective(Simulation(data, requires_grad=True))
     results = check_gradients(obj.evaluate, obj.initial_params(), ["v0", "E"], obj.natural_scales(), directions=1)
@@ -250,7 +252,7 @@ def test_particles_inside_counts_against_the_moved_and_rotated_body():
     half = np.array([0.1, 0.05])
     grid = primitive_sdf("box", 2, DX / 4, 2 * DX, half=half)
     motion = const_motion([0.5, 0.5], np.eye(2), [0.1, 0.0], math.pi / 2)
-    scene = RigidScene(["lid"], [grid], [motion], None)
+    scene = RigidScene(["lid"], [SimpleNamespace(type="box", size=2 * half)], [grid], [motion], None)
     t = 0.5  # rotated by 45 degrees, moved 5 cm right
     p, R = motion.pose(t)
     pts = np.random.default_rng(3).uniform(0.3, 0.7, size=(4000, 2))
@@ -259,3 +261,49 @@ def test_particles_inside_counts_against_the_moved_and_rotated_body():
     count = scene.particles_inside(pts, t)["lid"]
     assert exact.sum() > 200
     assert exact.sum() <= count <= len(pts) - outside.sum()
+    assert scene.particles_held(pts, t) == {}  # a box holds nothing
+
+
+def test_particles_held_by_a_moved_glass_are_those_in_its_cup():
+    """A glass lying on its side (axis along world -x) 0.2 m right of the origin: points in the
+    cup, in the wall and beyond the rim."""
+    from cosim.engines.kinematic import constant as const_motion
+    from cosim.simulation import RigidScene
+
+    shape = SimpleNamespace(type="glass", radius=0.05, height=0.1, thickness=0.01)
+    R = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # body +y -> world -x
+    motion = const_motion([0.2, 0.0, 0.0], R, [0.0, 0.0, 0.0], 0.0)
+    scene = RigidScene(["glass"], [shape], [None], [motion], None)
+    pts = np.array(
+        [
+            [0.2, 0.0, 0.0],  # the cup's middle
+            [0.16, 0.035, 0.0],  # in the cup near the wall and the rim
+            [0.2, 0.045, 0.0],  # in the side wall
+            [0.245, 0.0, 0.0],  # in the bottom
+            [0.14, 0.0, 0.0],  # beyond the rim
+        ]
+    )
+    assert scene.particles_held(pts, 0.0) == {"glass": 2}
+
+
+def test_bench_metrics_count_penetration_and_fast_separation_only():
+    """The contact benchmark's metrics on hand-placed particles: a ring of inner radius 0.2,
+    wall 0.02, moving at (0.3, 0); rebound counts only particles near the wall that leave it
+    faster than the threshold relative to the wall."""
+    from cosim.bench_contact import penetration_counts, rebound_count
+
+    center, inner, wall = np.array([0.5, 0.5]), 0.2, 0.02
+    radii = np.array([0.1, 0.19, 0.205, 0.215, 0.25, 0.3])
+    x = center + radii[:, None] * np.array([1.0, 0.0])
+    assert penetration_counts(x, center, inner, wall) == (2, 2)
+    v_wall = np.array([0.3, 0.0])
+    # inward speeds (relative to the wall) of particles at radius 0.195 on the +x side
+    rel_inward = np.array([2.0, 1.4, 0.5, -1.0])
+    x = np.tile(center + [0.195, 0.0], (4, 1))
+    v = v_wall - rel_inward[:, None] * np.array([1.0, 0.0])
+    assert rebound_count(x, v, center, v_wall, inner, band=0.01, speed=1.5) == 1
+    assert rebound_count(x, v, center, v_wall, inner, band=0.01, speed=1.0) == 2
+    # the same velocities far from the wall are not contact rebounds
+    assert rebound_count(x - [0.1, 0.0], v, center, v_wall, inner, band=0.01, speed=1.0) == 0
+    # a wall moving along with the particle: no separation at all
+    assert rebound_count(x, v, center, v, inner, band=0.01, speed=0.1) == 0

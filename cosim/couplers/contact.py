@@ -20,6 +20,8 @@ import taichi as ti
 
 from cosim.couplers.sdf import SDFField, SDFGrid
 
+STANDARD_GRAVITY = 9.80665  # [m/s^2] the unit of the particle model's stiffness
+
 
 @ti.data_oriented
 class RigidBoundaries:
@@ -168,14 +170,20 @@ class GridContact:
 @ti.data_oriented
 class ParticlePenalty:
     """Particle contact model: a particle at signed distance d < 0 from a body receives
-    the penalty force F = -k m_p d n (``stiffness`` k per unit mass [1/s^2], so the same k
-    suits any particle size), plus Coulomb friction: the tangential velocity relative to
-    the body is reduced by at most mu |F_n| dt / m_p. Added as momentum in P2G."""
+    the penalty force F = -k g0 m_p (d / dx) n, plus Coulomb friction (the tangential
+    velocity relative to the body is reduced by at most mu |F_n| dt / m_p), added as
+    momentum in P2G.
+
+    ``stiffness`` k is dimensionless: the push on a particle one grid cell deep, in units
+    of standard gravity g0. Scaling by the particle mass and the cell size makes one k
+    mean the same penetration in cells at any particle size and resolution; the paper's
+    k = 400 / 600 land in the range where the penetration-vs-rebound trade-off shows."""
 
     def __init__(self, engine, bodies: RigidBoundaries, stiffness: float, friction: float):
         self.engine = engine
         self.bodies = bodies
         self.stiffness = float(stiffness)
+        self.accel_per_depth = self.stiffness * STANDARD_GRAVITY / engine.dx  # [1/s^2]
         self.friction = float(friction)
         grad = engine.cfg.requires_grad
         self.output = ti.Vector.field(engine.dim, float, shape=engine.affine.shape, needs_grad=grad)
@@ -193,7 +201,7 @@ class ParticlePenalty:
                 d, n_body = rb.sdfs[b].distance_normal(R.transpose() @ (x - pos))
                 if d < 0:
                     n = R @ n_body
-                    jn = -self.stiffness * m * d * dt  # normal impulse, along +n
+                    jn = -self.accel_per_depth * m * d * dt  # normal impulse, along +n
                     vc = rb.vel[s, b] + rb.spin(rb.omega[s, b], x - pos)
                     rel = v - vc
                     vt = rel - rel.dot(n) * n
