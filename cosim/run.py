@@ -152,9 +152,14 @@ def run_scene(
     }
     if sim.rigid is not None:
         metrics["contact_model"] = scene.contact.model
-        metrics["particles_inside_rigid"] = sim.rigid.particles_inside(
-            sim.mpm.state()["x"], sim.step_index * sim.frame_dt
-        )
+        x, t = sim.mpm.state()["x"], sim.step_index * sim.frame_dt
+        metrics["particles_inside_rigid"] = sim.rigid.particles_inside(x, t)
+        held = sim.rigid.particles_held(x, t)
+        if held:
+            metrics["particles_held"] = held
+            metrics["particles_elsewhere"] = (
+                len(x) - sum(held.values()) - sum(metrics["particles_inside_rigid"].values())
+            )
     name = recorder.write(out_dir, preview)
     if name:
         metrics["preview"] = name

@@ -227,7 +227,9 @@ class Simulation:
             ForecastContact(self.mpm, boundaries, contact.friction, contact.alpha, contact.threshold, contact.smoothing)
         else:
             ParticlePenalty(self.mpm, boundaries, contact.stiffness, contact.friction)
-        self.rigid = RigidScene([b.name for b in scene.rigid.bodies], grids, motions, boundaries)
+        self.rigid = RigidScene(
+            [b.name for b in scene.rigid.bodies], [b.shape for b in scene.rigid.bodies], grids, motions, boundaries
+        )
         self.before_step = lambda t0, dt, K: boundaries.set_states(*kinematic_states(motions, t0, dt, K))
 
     # ------------------------------------------------------------ time stepping
@@ -329,6 +331,7 @@ class RigidScene:
     """The scene's rigid bodies: names, SDF grids, motions and their MPM boundary."""
 
     names: list[str]
+    shapes: list  # scene RigidShape specs
     grids: list
     motions: list
     boundaries: object
@@ -343,6 +346,16 @@ class RigidScene:
             d, _ = grid.sample((x - p) @ R)  # world to body frame: R^T (x - p)
             out[name] = int(np.sum(d < 0))
         return out
+
+    def particles_held(self, x: np.ndarray, t: float) -> dict[str, int]:
+        """How many particles each container body (glass, ring) holds in its cavity at time t."""
+        from cosim.couplers.sdf import in_cavity, is_container
+
+        return {
+            name: int(np.sum(in_cavity(shape, (x - p) @ R)))
+            for name, shape, (p, R) in zip(self.names, self.shapes, self.poses(t))
+            if is_container(shape)
+        }
 
 
 def _wave_speed(body, dim: int) -> float:
