@@ -1,0 +1,454 @@
+"""DART rigid bodies with a one-step vector-Jacobian product, for coupling to the differentiable MPM.
+
+Layouts (fixed at construction; skeletons in the order given, dofs in DART's skeleton order):
+- state: ``[q_0, q_1, ..., qd_0, qd_1, ...]``, all positions of all skeletons, then all velocities
+  (length 2 * ``dofs``). Free joint: q = [rotation vector, translation] of the body relative to the joint
+  origin, qd = [angular, linear] velocity of the body origin (world frame for a root free joint); ball joint: q = rotation vector, qd = angular velocity in the child body frame; planar:
+  [x, y, angle about z].
+- action: per skeleton, per joint in DART's joint order, the block of every joint whose control mode is not
+  ``passive``: torque/velocity -> one entry per dof; wrench/twist -> 6 ([torque; force] or [angular; linear],
+  world frame, about/of the body origin). ``action_layout`` lists the blocks.
+- wrenches: (len(body_names), 6) rows [torque; force] in world coordinates, torque about the BODY ORIGIN
+  (the body frame's origin, not the COM), applied for one step.
+- bodies: ``body_names`` = "skeleton/link" for every body node, skeletons in order, DART's body order within.
+
+The step is DART's: semi-implicit Euler, implicit joint damping, enforced joint limits, optional rigid
+contact. ``vjp`` differentiates one step (see there for which blocks are closed form).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import dartpy as dart
+import numpy as np
+
+from cosim.engines.rigid_build import CONTROL_MODES, ShapeSpec, SkeletonSpec, build_skeleton, urdf_geometry
+from cosim.errors import InputError, SimulationError
+
+FD_EPS = 1e-6  # central-difference step for the state blocks (relative error ~1e-9 at unit scales)
+_ORIGIN = np.zeros(3)
+
+
+@dataclass
+class StepRecord:
+    """What ``vjp`` needs about one step: the state before and after, and the inputs."""
+
+    state: np.ndarray
+    action: np.ndarray
+    wrenches: np.ndarray
+    next_state: np.ndarray
+
+
+@dataclass
+class Control:
+    """One controlled joint: skeleton index, DART joint, skeleton-local dof indices, mode, action slice."""
+
+    skel: int
+    joint: object
+    dofs: np.ndarray
+    mode: str
+    slice: slice
+
+
+# ------------------------------------------------------------------------------------------ SO(3) helpers
+
+
+def hat(v: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def left_jacobian(phi: np.ndarray) -> np.ndarray:
+    """J_l(phi): exp(phi + d) = exp(J_l d) exp(phi) to first order."""
+    t = float(np.linalg.norm(phi))
+    K = hat(phi)
+    if t < 1e-6:
+        return np.eye(3) + K / 2 + K @ K / 6
+    return np.eye(3) + (1 - math.cos(t)) / t**2 * K + (t - math.sin(t)) / t**3 * K @ K
+
+
+def left_jacobian_inv(phi: np.ndarray) -> np.ndarray:
+    t = float(np.linalg.norm(phi))
+    K = hat(phi)
+    if t < 1e-6:
+        return np.eye(3) - K / 2 + K @ K / 12
+    return np.eye(3) - K / 2 + (1 / t**2 - (1 + math.cos(t)) / (2 * t * math.sin(t))) * K @ K
+
+
+def position_step_jacobian(kind: str, q_next: np.ndarray, qd_next: np.ndarray, R0: np.ndarray, dt: float) -> np.ndarray:
+    """d q'/d qd' of DART's integration for a free (6x6) or ball (3x3) joint, closed form.
+
+    Measured conventions (DART 6.20), R0 = rotation of the joint origin in the parent frame:
+    free joint, qd = [w; v] in the parent frame: q_rot' = log(exp(dt R0^T w) exp(q_rot)), q_pos' = q_pos + dt R0^T v,
+      so d q_rot'/d w = J_l^-1(q_rot') J_l(dt R0^T w) dt R0^T;
+    ball joint, w in the child body frame: q' = log(exp(q) exp(dt w)) -> J_r^-1(q') J_r(dt w) dt, J_r(x) = J_l(-x).
+    """
+    if kind == "BallJoint":
+        return left_jacobian_inv(-q_next) @ left_jacobian(-dt * qd_next) * dt
+    w = R0.T @ qd_next[:3]
+    B = np.zeros((6, 6))
+    B[:3, :3] = left_jacobian_inv(q_next[:3]) @ left_jacobian(dt * w) @ R0.T * dt
+    B[3:, 3:] = dt * R0.T
+    return B
+
+
+# ------------------------------------------------------------------------------------------------ engine
+
+
+class RigidEngine:
+    """One DART world holding the given skeletons (deactivation off, so replay from a state is bitwise)."""
+
+    def __init__(
+        self,
+        skeleton_specs: list[SkeletonSpec],
+        dt: float,
+        gravity=(0.0, 0.0, -9.81),
+        collision: bool = True,
+    ) -> None:
+        if dt <= 0:
+            raise InputError(f"rigid dt must be > 0, got {dt}")
+        names = [s.name for s in skeleton_specs]
+        if len(set(names)) != len(names):
+            raise InputError(f"skeleton names must be unique, got {names}")
+        self.dt = float(dt)
+        self.specs = list(skeleton_specs)
+        self.world = dart.simulation.World()
+        self.world.setTimeStep(self.dt)
+        self.world.setGravity(np.asarray(gravity, dtype=np.float64))
+        options = self.world.getDeactivationOptions()
+        options.mEnabled = False
+        self.world.setDeactivationOptions(options)
+        # Bullet: FCL in this wheel has no capsule and lets cylinders sink; Bullet handles all five shape kinds.
+        self.world.getConstraintSolver().setCollisionDetector(dart.collision.BulletCollisionDetector())
+        self.skeletons = [build_skeleton(s) for s in self.specs]
+        for spec, skel in zip(self.specs, self.skeletons):
+            self.world.addSkeleton(skel)
+            for body in skel.getBodyNodes():
+                body.setCollidable(bool(collision and spec.collide))
+        sizes = [s.getNumDofs() for s in self.skeletons]
+        self._offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(int)
+        self.dofs = int(self._offsets[-1])
+        self._bodies = [(k, b) for k, s in enumerate(self.skeletons) for b in s.getBodyNodes()]
+        self.body_names = [f"{self.specs[k].name}/{b.getName()}" for k, b in self._bodies]
+        self.controls = self._parse_controls()
+        self.action_size = sum(c.slice.stop - c.slice.start for c in self.controls)
+        self._kinematic = self._kinematic_masks()
+        self._rotation_blocks = self._find_rotation_blocks()
+        self.steps = 0
+
+    # ------------------------------------------------------------------------------------- construction
+
+    def _parse_controls(self) -> list[Control]:
+        """Controls in action order; sets DART VELOCITY actuators on velocity/twist joints."""
+        controls, start = [], 0
+        for k, (spec, skel) in enumerate(zip(self.specs, self.skeletons)):
+            joints = {j.getName(): j for j in skel.getJoints()}
+            unknown = sorted(set(spec.controls) - set(joints))
+            if unknown:
+                raise InputError(
+                    f"skeleton '{spec.name}': controls name unknown joints {unknown}; joints: {sorted(joints)}"
+                )
+            for name, joint in joints.items():
+                mode = spec.controls.get(name, spec.default_control)
+                where = f"skeleton '{spec.name}', joint '{name}'"
+                _check_mode(mode, joint, where)
+                n = joint.getNumDofs()
+                if mode == "passive" or n == 0:
+                    continue
+                if mode in ("velocity", "twist"):
+                    joint.setActuatorType(dart.dynamics.ActuatorType.VELOCITY)
+                size = 6 if mode in ("wrench", "twist") else n
+                dofs = np.array([joint.getIndexInSkeleton(i) for i in range(n)])
+                controls.append(Control(k, joint, dofs, mode, slice(start, start + size)))
+                start += size
+        return controls
+
+    def _kinematic_masks(self) -> list[np.ndarray]:
+        masks = [np.zeros(s.getNumDofs(), dtype=bool) for s in self.skeletons]
+        for c in self.controls:
+            if c.mode in ("velocity", "twist"):
+                masks[c.skel][c.dofs] = True
+        return masks
+
+    def _find_rotation_blocks(self) -> list[tuple[str, np.ndarray, np.ndarray]]:
+        """(type, global dof indices, origin rotation) of free/ball joints; all others integrate q += dt qd."""
+        blocks = []
+        for k, skel in enumerate(self.skeletons):
+            for joint in skel.getJoints():
+                kind = joint.getType()
+                if kind in ("FreeJoint", "BallJoint"):
+                    idx = [self._offsets[k] + joint.getIndexInSkeleton(i) for i in range(joint.getNumDofs())]
+                    R0 = joint.getTransformFromParentBodyNode().rotation()
+                    blocks.append((kind, np.array(idx), np.asarray(R0)))
+                elif kind not in ("RevoluteJoint", "PrismaticJoint", "PlanarJoint", "WeldJoint"):
+                    raise InputError(f"skeleton '{skel.getName()}': joint type {kind} is not supported")
+        return blocks
+
+    @property
+    def action_layout(self) -> list[tuple[str, str, str, slice]]:
+        """(skeleton, joint, mode, slice into the action) for every action block."""
+        return [(self.specs[c.skel].name, c.joint.getName(), c.mode, c.slice) for c in self.controls]
+
+    # ------------------------------------------------------------------------------------------- state
+
+    def state(self) -> np.ndarray:
+        """All positions, then all velocities (see the module docstring)."""
+        q = [s.getPositions() for s in self.skeletons]
+        qd = [s.getVelocities() for s in self.skeletons]
+        return np.concatenate(q + qd) if self.dofs else np.zeros(0)
+
+    def set_state(self, s: np.ndarray) -> None:
+        """Restore a ``state()``; stepping from it again is bitwise identical."""
+        s = np.asarray(s, dtype=np.float64)
+        if s.shape != (2 * self.dofs,):
+            raise InputError(f"rigid state must have length {2 * self.dofs} (positions then velocities), got {s.shape}")
+        n, o = self.dofs, self._offsets
+        for k, skel in enumerate(self.skeletons):
+            skel.setPositions(s[o[k] : o[k + 1]])
+            skel.setVelocities(s[n + o[k] : n + o[k + 1]])
+
+    # -------------------------------------------------------------------------------------------- step
+
+    def step(self, action: np.ndarray | None = None, wrenches: np.ndarray | None = None) -> StepRecord:
+        """Advance one dt under the action and per-body world wrenches; NaN -> SimulationError."""
+        action, wrenches = self._check_inputs(action, wrenches)
+        before = self.state()
+        self._apply(action, wrenches)
+        self.world.step()
+        self.steps += 1
+        after = self.state()
+        self._check_finite(after)
+        return StepRecord(before, action, wrenches, after)
+
+    def _check_inputs(self, action, wrenches) -> tuple[np.ndarray, np.ndarray]:
+        action = np.zeros(self.action_size) if action is None else np.asarray(action, dtype=np.float64).reshape(-1)
+        if action.size != self.action_size:
+            layout = ", ".join(f"{s}/{j}:{m}[{sl.start}:{sl.stop}]" for s, j, m, sl in self.action_layout)
+            raise InputError(
+                f"rigid action has length {action.size}, expected {self.action_size} ({layout or 'no controls'})"
+            )
+        nb = len(self._bodies)
+        wrenches = np.zeros((nb, 6)) if wrenches is None else np.asarray(wrenches, dtype=np.float64)
+        if wrenches.shape != (nb, 6):
+            raise InputError(
+                f"rigid wrenches must have shape ({nb}, 6) = (bodies, [torque; force]), got {wrenches.shape}"
+            )
+        if not (np.all(np.isfinite(action)) and np.all(np.isfinite(wrenches))):
+            raise InputError("rigid action or wrenches contain non-finite values (DART would silently drop them)")
+        return action, wrenches
+
+    def _joint_jacobian(self, c: Control) -> np.ndarray:
+        """World Jacobian of the joint's child body origin w.r.t. the joint's own dofs (6 x 6 for a free root)."""
+        return self._body_jacobian(c.skel, c.joint.getChildBodyNode())[:, c.dofs]
+
+    def _body_jacobian(self, k: int, body) -> np.ndarray:
+        """6 x (dofs of skeleton k) world Jacobian of the body origin, rows [angular; linear]."""
+        return self.skeletons[k].getWorldJacobian(body, _ORIGIN)
+
+    def _apply(self, action: np.ndarray, wrenches: np.ndarray) -> None:
+        """Set joint forces, velocity commands and external wrenches for the next world.step()."""
+        taus = [np.zeros(s.getNumDofs()) for s in self.skeletons]
+        commands = []
+        for c in self.controls:
+            a = action[c.slice]
+            if c.mode == "torque":
+                taus[c.skel][c.dofs] += a
+            elif c.mode == "wrench":
+                taus[c.skel][c.dofs] += self._joint_jacobian(c).T @ a
+            else:
+                target = a if c.mode == "velocity" else np.linalg.solve(self._joint_jacobian(c), a)
+                commands.append((c, target))
+        for skel, tau in zip(self.skeletons, taus):
+            skel.setForces(tau)
+        for c, target in commands:
+            for d, v in zip(c.dofs, target):
+                self.skeletons[c.skel].setCommand(int(d), float(v))
+        for (k, body), w in zip(self._bodies, wrenches):
+            if np.any(w):
+                body.addExtTorque(w[:3], False)
+                body.addExtForce(w[3:], _ORIGIN, False, True)
+
+    def _advance(self, state: np.ndarray, action: np.ndarray, wrenches: np.ndarray) -> np.ndarray:
+        """DART's step from a given state, without bookkeeping (for finite differences)."""
+        self.set_state(state)
+        self._apply(action, wrenches)
+        self.world.step()
+        return self.state()
+
+    def _check_finite(self, s: np.ndarray) -> None:
+        n, o = self.dofs, self._offsets
+        for k, spec in enumerate(self.specs):
+            if not (np.all(np.isfinite(s[o[k] : o[k + 1]])) and np.all(np.isfinite(s[n + o[k] : n + o[k + 1]]))):
+                raise SimulationError(
+                    f"rigid skeleton '{spec.name}' has a non-finite state after step {self.steps}; "
+                    "reduce dt, add joint damping or check the applied forces"
+                )
+
+    # --------------------------------------------------------------------------------------------- vjp
+
+    def vjp(self, record: StepRecord, grad_next_state: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(grad_state, grad_action, grad_wrenches) of one step for the adjoint ``grad_next_state``.
+
+        Action and wrench blocks: closed form from DART's M, damping D and Jacobians at the step's start.
+        Per skeleton, with F the force-driven dofs, K the velocity-controlled ones and A = M_FF + dt D_FF:
+        qd'_F = qd_F + dt A^-1 (tau_F + (J^T F)_F - C_F - D qd_F - M_FK (target - qd_K)/dt), qd'_K = target.
+        Positions: q' = q + dt qd' except free/ball joints (closed form,
+        ``position_step_jacobian``). These blocks are exact for DART's unconstrained step; while a joint limit
+        or a contact is active they omit the constraint impulse's dependence on the inputs.
+        State block: central differences over DART's own deterministic step (set_state, perturb, step): the
+        closed form needs the derivatives of the Coriolis/gravity terms, M(q) and J(q), which DART does not
+        expose; the differences include contacts and limits. Cost: 4 * dofs steps.
+        """
+        g = np.asarray(grad_next_state, dtype=np.float64)
+        if g.shape != (2 * self.dofs,):
+            raise InputError(f"grad_next_state must have length {2 * self.dofs}, got {g.shape}")
+        current = self.state()
+        self.set_state(record.state)
+        grad_v = self._velocity_adjoint(g, record.next_state)
+        grad_tau, grad_cmd = self._force_adjoints(grad_v)
+        grad_action = self._action_adjoint(grad_tau, grad_cmd)
+        grad_wrenches = (
+            np.stack([self._body_jacobian(k, body) @ grad_tau[k] for k, body in self._bodies])
+            if self._bodies
+            else np.zeros((0, 6))
+        )
+        grad_state = self._state_vjp_fd(record, g)
+        self.set_state(current)
+        return grad_state, grad_action, grad_wrenches
+
+    def _velocity_adjoint(self, g: np.ndarray, next_state: np.ndarray) -> np.ndarray:
+        """Adjoint of qd' (total): g_qd + (d q'/d qd')^T g_q."""
+        n = self.dofs
+        g_q, g_qd = g[:n], g[n:]
+        grad_v = g_qd + self.dt * g_q
+        for kind, idx, R0 in self._rotation_blocks:
+            B = position_step_jacobian(kind, next_state[idx], next_state[n + idx], R0, self.dt)
+            grad_v[idx] = g_qd[idx] + B.T @ g_q[idx]
+        return grad_v
+
+    def _force_adjoints(self, grad_v: np.ndarray) -> tuple[list[np.ndarray], list[np.ndarray]]:
+        """Per skeleton: adjoints of the generalised forces and of the velocity targets (at the current q)."""
+        grad_tau, grad_cmd = [], []
+        for k, skel in enumerate(self.skeletons):
+            gv = grad_v[self._offsets[k] : self._offsets[k + 1]]
+            kin = self._kinematic[k]
+            free = ~kin
+            M = skel.getMassMatrix()
+            D = np.array([skel.getDof(i).getDampingCoefficient() for i in range(skel.getNumDofs())])
+            y = np.zeros_like(gv)
+            if free.any():
+                A = M[np.ix_(free, free)] + self.dt * np.diag(D[free])
+                y[free] = np.linalg.solve(A, gv[free])
+            cmd = np.zeros_like(gv)
+            cmd[kin] = gv[kin] - M[np.ix_(kin, free)] @ y[free]
+            grad_tau.append(self.dt * y)
+            grad_cmd.append(cmd)
+        return grad_tau, grad_cmd
+
+    def _action_adjoint(self, grad_tau: list[np.ndarray], grad_cmd: list[np.ndarray]) -> np.ndarray:
+        out = np.zeros(self.action_size)
+        for c in self.controls:
+            if c.mode == "torque":
+                out[c.slice] = grad_tau[c.skel][c.dofs]
+            elif c.mode == "wrench":
+                out[c.slice] = self._joint_jacobian(c) @ grad_tau[c.skel][c.dofs]
+            elif c.mode == "velocity":
+                out[c.slice] = grad_cmd[c.skel][c.dofs]
+            else:
+                out[c.slice] = np.linalg.solve(self._joint_jacobian(c).T, grad_cmd[c.skel][c.dofs])
+        return out
+
+    def _state_vjp_fd(self, record: StepRecord, g: np.ndarray) -> np.ndarray:
+        out = np.zeros(2 * self.dofs)
+        for i in range(2 * self.dofs):
+            e = np.zeros(2 * self.dofs)
+            e[i] = FD_EPS
+            plus = self._advance(record.state + e, record.action, record.wrenches)
+            minus = self._advance(record.state - e, record.action, record.wrenches)
+            out[i] = g @ (plus - minus) / (2 * FD_EPS)
+        return out
+
+    # ------------------------------------------------------------------------------------ body states
+
+    def body_states(self) -> dict[str, np.ndarray]:
+        """Per body (``body_names`` order), world frame: ``position`` of the body origin (nb, 3), ``rotation``
+        body-to-world (nb, 3, 3), ``linear_velocity`` of the origin (nb, 3), ``angular_velocity`` (nb, 3)."""
+        nb = len(self._bodies)
+        out = {
+            "position": np.zeros((nb, 3)),
+            "rotation": np.zeros((nb, 3, 3)),
+            "linear_velocity": np.zeros((nb, 3)),
+            "angular_velocity": np.zeros((nb, 3)),
+        }
+        qds = [s.getVelocities() for s in self.skeletons]
+        for i, (k, body) in enumerate(self._bodies):
+            T = body.getWorldTransform().matrix()
+            twist = self._body_jacobian(k, body) @ qds[k]
+            out["position"][i], out["rotation"][i] = T[:3, 3], T[:3, :3]
+            out["angular_velocity"][i], out["linear_velocity"][i] = twist[:3], twist[3:]
+        return out
+
+    def body_states_vjp(self, grad_pos=None, grad_R=None, grad_v=None, grad_w=None, state=None) -> np.ndarray:
+        """Gradient w.r.t. the state (positions, velocities) of sum <grad, body_states()> at ``state``
+        (default: the current state). None means a zero gradient.
+
+        d/d qd closed form: [w; v] = J(q) qd, so grad_qd = sum_b J_b^T [grad_w; grad_v]. d/d q: central
+        differences over DART's forward kinematics (a closed form needs dJ/dq and the rotation-vector
+        chart of free/ball joints, which DART does not expose); cost 2 * dofs kinematics evaluations.
+        """
+        nb = len(self._bodies)
+        grads = [
+            np.zeros(shape) if g is None else np.asarray(g, dtype=np.float64).reshape(shape)
+            for g, shape in ((grad_pos, (nb, 3)), (grad_R, (nb, 3, 3)), (grad_v, (nb, 3)), (grad_w, (nb, 3)))
+        ]
+        current = self.state()
+        s = current if state is None else np.asarray(state, dtype=np.float64)
+        self.set_state(s)
+        n = self.dofs
+        out = np.zeros(2 * n)
+        for i, (k, body) in enumerate(self._bodies):
+            J = self._body_jacobian(k, body)
+            out[n + self._offsets[k] : n + self._offsets[k + 1]] += J.T @ np.concatenate([grads[3][i], grads[2][i]])
+        for i in range(n):
+            e = np.zeros(2 * n)
+            e[i] = FD_EPS
+            out[i] = (self._body_state_dot(s + e, grads) - self._body_state_dot(s - e, grads)) / (2 * FD_EPS)
+        self.set_state(current)
+        return out
+
+    def _body_state_dot(self, s: np.ndarray, grads: list[np.ndarray]) -> float:
+        self.set_state(s)
+        b = self.body_states()
+        keys = ("position", "rotation", "linear_velocity", "angular_velocity")
+        return float(sum(np.sum(g * b[key]) for g, key in zip(grads, keys)))
+
+    # --------------------------------------------------------------------------------------- geometry
+
+    def body_index(self, name: str) -> int:
+        """Index in ``body_names`` of "skeleton/link" or of a link name unique across skeletons."""
+        if name in self.body_names:
+            return self.body_names.index(name)
+        hits = [i for i, full in enumerate(self.body_names) if full.split("/", 1)[1] == name]
+        if len(hits) != 1:
+            raise InputError(f"rigid body '{name}' is {'ambiguous' if hits else 'unknown'}; bodies: {self.body_names}")
+        return hits[0]
+
+    def link_geometry(self, body_name: str) -> list[tuple[ShapeSpec, np.ndarray]]:
+        """Collision shapes of a body with their 4x4 pose in the body frame (mesh paths absolute)."""
+        k, body = self._bodies[self.body_index(body_name)]
+        spec = self.specs[k]
+        if spec.urdf is not None:
+            shapes = urdf_geometry(spec).get(body.getName(), [])
+        else:
+            shapes = next(link.shapes for link in spec.links if link.name == body.getName())
+        return [(s, s.transform()) for s in shapes]
+
+
+def _check_mode(mode: str, joint, where: str) -> None:
+    if mode not in CONTROL_MODES:
+        raise InputError(f"{where}: unknown control mode '{mode}'; use one of {', '.join(CONTROL_MODES)}")
+    if mode in ("wrench", "twist") and (joint.getType() != "FreeJoint" or joint.getParentBodyNode() is not None):
+        raise InputError(
+            f"{where}: '{mode}' control needs a free joint attached to the world; use 'torque' or 'velocity'"
+        )
