@@ -289,11 +289,15 @@ class ForecastContact:
         e, rb = self.engine, self.bodies
         for p in range(e.n_particles):
             x = e.x[src, p]
+            nearest = 1e30  # particles farther than the threshold from every body skip the look-ahead
+            for b in ti.static(range(rb.n)):
+                nearest = ti.min(nearest, rb.sdfs[b].distance(rb.rot[s, b].transpose() @ (x - rb.pos[s, b])))
             base, fx, w = e._stencil(x)
             v_init = ti.Vector.zero(float, e.dim)
-            for offset in ti.static(ti.grouped(ti.ndrange(*([3] * e.dim)))):
-                weight = e.stencil_weight(w, offset)
-                v_init += weight * e.grid_v[g, base + offset]
+            if nearest < self.threshold:
+                for offset in ti.static(ti.grouped(ti.ndrange(*([3] * e.dim)))):
+                    weight = e.stencil_weight(w, offset)
+                    v_init += weight * e.grid_v[g, base + offset]
             self.v_init[g, p] = v_init
             v = v_init
             owner = -1
