@@ -1,7 +1,8 @@
 """Scalar losses on the final MPM state, with their gradients (NumPy).
 
 A loss returns ``(value, dL/dstate)`` where the gradient has the state's keys
-(x, v, C, F); keys a loss does not depend on get zeros.
+(x, v, C, F, and "rigid" for scenes with DART skeletons); keys a loss does not
+depend on get zeros.
 """
 
 from __future__ import annotations
@@ -18,10 +19,12 @@ def _zeros_like_state(state: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
 class Loss:
     """The scene's loss, bound to the particles it reads."""
 
-    def __init__(self, scene: Scene, slices: dict[str, slice], mass: np.ndarray):
+    def __init__(self, scene: Scene, slices: dict[str, slice], mass: np.ndarray, rigid=None):
         spec = scene.loss
         n = len(mass)
         self.kind = spec.type
+        if self.kind == "joint_target":
+            self.dofs = rigid.dof_indices(spec.skeleton, spec.joint)
         sl = slices[spec.body] if spec.body else slice(0, n)
         self.sel = np.arange(n)[sl]
         self.mass = mass[self.sel]
@@ -32,6 +35,10 @@ class Loss:
     def __call__(self, state: dict[str, np.ndarray]) -> tuple[float, dict[str, np.ndarray]]:
         grad = _zeros_like_state(state)
         x = state["x"][self.sel]
+        if self.kind == "joint_target":  # |q_joint - target|^2
+            diff = state["rigid"][self.dofs] - self.target
+            grad["rigid"][self.dofs] = 2.0 * diff
+            return float(diff @ diff), grad
         if self.kind == "weighted_positions":
             value = float((self.weights * x).sum() / len(x))
             grad["x"][self.sel] = self.weights / len(x)

@@ -163,12 +163,15 @@ class LossSpec(Strict):
 
     - weighted_positions: mean over particles of w_p . x_p with fixed seeded
       normal weights w_p: a generic probe of every particle's final position;
-    - com_target: squared distance [m^2] of a body's centre of mass to ``target``.
+    - com_target: squared distance [m^2] of a body's centre of mass to ``target``;
+    - joint_target: squared distance of a DART joint's positions to ``target``.
     """
 
-    type: Literal["weighted_positions", "com_target"] = "weighted_positions"
+    type: Literal["weighted_positions", "com_target", "joint_target"] = "weighted_positions"
     body: str | None = None  # restrict to one body (required for com_target)
-    target: Vec | None = None
+    target: Vec | None = None  # com_target: a point; joint_target: the joint's positions
+    skeleton: str | None = None  # joint_target: the articulated skeleton
+    joint: str | None = None  # joint_target: its joint
 
 
 # ---------------------------------------------------------------- rigid bodies, contact
@@ -219,6 +222,67 @@ class RigidSpec(Strict):
     bodies: Annotated[list[RigidBodySpec], Field(min_length=1)]
 
 
+class JointSceneSpec(Strict):
+    """How a link hangs on its parent (``parent`` None: the world). The joint frame is placed
+    by ``position`` [m] and ``rotation`` (2D angle / 3D rotation vector [rad]) in the parent's
+    body frame; the link's body frame is the joint frame at q = 0."""
+
+    type: Literal["free", "revolute", "prismatic", "ball", "weld"] = "free"  # 2D: free = planar (x, y, angle)
+    parent: str | None = None
+    position: Vec | None = None
+    rotation: float | Vec = 0.0
+    axis: Vec | None = None  # revolute / prismatic, joint frame (2D revolute: always z)
+    lower: float | None = None  # limits, enforced [rad or m]
+    upper: float | None = None
+    damping: Annotated[float, Field(ge=0)] = 0.0  # [N m s/rad or N s/m]
+    q0: float | Vec | None = None  # initial joint position(s) (free 3D: [rotation vector, translation])
+    qd0: float | Vec | None = None  # initial joint velocity(ies) (free 3D: [angular, linear], world)
+
+
+class LinkSceneSpec(Strict):
+    """A rigid link: its shape is the MPM contact geometry and (uniform) mass distribution."""
+
+    name: str
+    shape: RigidShape
+    density: Positive | None = None  # [kg/m^3] (2D: per metre of depth, like the MPM)
+    mass: Positive | None = None  # [kg] instead of density
+    joint: JointSceneSpec = JointSceneSpec()
+    couple: bool = True  # the MPM sees it (False: costs nothing in the MPM)
+    sdf_spacing: Positive | None = None  # [m] default dx / 2
+
+
+class SkeletonSceneSpec(Strict):
+    """An articulated rigid body from ``links`` (primitives) or a ``urdf`` file (3D)."""
+
+    name: str
+    links: list[LinkSceneSpec] = []
+    urdf: str | None = None
+    fixed_base: bool = True  # urdf: weld the root link to the world
+    package_dirs: dict[str, str] = {}  # urdf: package://name/ -> folder (relative to the scene)
+    initial_positions: dict[str, float | Vec] = {}  # urdf: joint name -> position
+    couple: Literal["all", "none"] | list[str] = "all"  # urdf: links the MPM sees
+    collide: bool = False  # DART rigid-rigid collision (3D)
+    controls: dict[str, Literal["torque", "velocity", "wrench", "twist"]] = {}  # joint name -> mode
+
+
+class ActionSpec(Strict):
+    """The rigid action sequence: one action per ``hold`` macro steps (the paper's tasks hold
+    each action several steps). An action concatenates every controlled joint's block in the
+    skeletons' order (torque/velocity: one entry per dof; wrench/twist: 6, [angular; linear])."""
+
+    hold: Annotated[int, Field(ge=1)] = 1
+    initial: Vec | None = None  # the action of every segment not in ``sequence`` (default zeros)
+    sequence: list[Vec] = []  # actions of the first segments
+
+
+class ArticulatedSpec(Strict):
+    """Articulated rigid bodies simulated by DART and coupled two-way with the MPM."""
+
+    skeletons: Annotated[list[SkeletonSceneSpec], Field(min_length=1)]
+    actions: ActionSpec = ActionSpec()
+    collision: bool = False  # DART rigid-rigid collision for skeletons with collide: true
+
+
 class ContactSpec(Strict):
     """How MPM material meets rigid bodies (see cosim.couplers.contact)."""
 
@@ -232,7 +296,7 @@ class ContactSpec(Strict):
 
 
 class GradientSpec(Strict):
-    params: list[Literal["x0", "v0", "impulse", "E", "nu"]] = ["v0", "impulse", "E"]
+    params: list[Literal["x0", "v0", "impulse", "E", "nu", "action"]] = ["v0", "impulse", "E"]
     tolerance: Positive = 1e-4  # relative error allowed by `cosim gradcheck`
     directions: Annotated[int, Field(ge=1, le=64)] = 3
 
@@ -240,7 +304,7 @@ class GradientSpec(Strict):
 class OptimizeSpec(Strict):
     """`cosim optimize`: Adam on the loss's adjoint gradient."""
 
-    params: list[Literal["x0", "v0", "impulse", "E", "nu"]] = ["impulse"]
+    params: list[Literal["x0", "v0", "impulse", "E", "nu", "action"]] = ["impulse"]
     iterations: Annotated[int, Field(ge=1, le=100000)] = 30
     learning_rate: Positive = 0.05  # a fraction of each parameter's natural scale per step
 
@@ -263,6 +327,7 @@ class Scene(Strict):
     time: TimeSpec = TimeSpec()
     mpm: MPMSpec
     rigid: RigidSpec | None = None
+    articulated: ArticulatedSpec | None = None
     contact: ContactSpec = ContactSpec()
     controls: list[ControlSpec] = []
     loss: LossSpec = LossSpec()

@@ -175,9 +175,23 @@ def semantic_problems(scene: Scene) -> list[str]:
             problems.append("loss.body: com_target needs the body whose centre of mass is steered")
         if loss.target is None:
             problems.append("loss.target: com_target needs a target point")
-    vec("loss.target", loss.target)
+    if loss.type == "joint_target":
+        if None in (loss.skeleton, loss.joint, loss.target):
+            problems.append("loss: joint_target needs skeleton, joint and target (the joint's positions)")
+        if scene.articulated is None:
+            problems.append("loss.type: joint_target needs an articulated: section")
+    else:
+        vec("loss.target", loss.target)
     if scene.rigid is not None:
         problems += rigid_problems(scene)
+    if scene.articulated is not None:
+        from cosim.articulated_checks import articulated_problems
+
+        problems += articulated_problems(scene)
+    for section in ("gradient", "optimize"):
+        if "action" in getattr(scene, section).params and section in scene.model_fields_set:
+            if scene.articulated is None or not any(s.controls for s in scene.articulated.skeletons):
+                problems.append(f"{section}.params: 'action' needs a skeleton with controls under articulated:")
     if "impulse" in scene.gradient.params and not scene.controls and "gradient" in scene.model_fields_set:
         problems.append("gradient.params: 'impulse' needs at least one entry under controls")
     if "impulse" in scene.optimize.params and not scene.controls and "optimize" in scene.model_fields_set:
@@ -208,30 +222,34 @@ def rigid_problems(scene: Scene) -> list[str]:
         base = f"rigid.bodies[{i}]"
         if names.count(body.name) > 1 or body.name in soft:
             problems.append(f"{base}.name: '{body.name}' is used twice; body names must be unique")
-        shape = body.shape
-        for key in _SHAPE_NEEDS[shape.type]:
-            if getattr(shape, key) is None:
-                problems.append(f"{base}.shape.{key}: required for a {shape.type}")
-        if shape.type == "box" and shape.size is not None and len(shape.size) != d:
-            problems.append(f"{base}.shape.size: must have {d} entries (dim is {d}), got {len(shape.size)}")
-        if shape.type == "ring" and d != 2:
-            problems.append(f"{base}.shape.type: a ring is 2D; in 3D use a glass or a mesh")
-        if shape.type == "mesh":
-            if d != 3:
-                problems.append(f"{base}.shape.type: meshes are 3D; in 2D use box, sphere, capsule, glass or ring")
-            elif shape.file is not None and not (scene.source_dir / shape.file).resolve().is_file():
-                problems.append(f"{base}.shape.file: file not found: {(scene.source_dir / shape.file).resolve()}")
-        if shape.type == "glass" and None not in (shape.radius, shape.thickness, shape.height):
-            if shape.thickness >= min(shape.radius, shape.height):
-                problems.append(f"{base}.shape.thickness: must be below the radius and the height")
+        problems += rigid_shape_problems(f"{base}.shape", body.shape, scene)
         if len(body.position) != d:
             problems.append(f"{base}.position: must have {d} entries (dim is {d}), got {len(body.position)}")
-        problems += _rotation_problems(f"{base}.rotation", body.rotation, d)
+        problems += rotation_problems(f"{base}.rotation", body.rotation, d)
         problems += _motion_problems(f"{base}.motion", body.motion, d, body.position)
     return problems
 
 
-def _rotation_problems(key: str, value, d: int) -> list[str]:
+def rigid_shape_problems(key: str, shape, scene: Scene) -> list[str]:
+    """A rigid shape has its sizes for its type and dimension, and its mesh file exists."""
+    d = scene.dim
+    problems = [f"{key}.{k}: required for a {shape.type}" for k in _SHAPE_NEEDS[shape.type] if getattr(shape, k) is None]
+    if shape.type == "box" and shape.size is not None and len(shape.size) != d:
+        problems.append(f"{key}.size: must have {d} entries (dim is {d}), got {len(shape.size)}")
+    if shape.type == "ring" and d != 2:
+        problems.append(f"{key}.type: a ring is 2D; in 3D use a glass or a mesh")
+    if shape.type == "mesh":
+        if d != 3:
+            problems.append(f"{key}.type: meshes are 3D; in 2D use box, sphere, capsule, glass or ring")
+        elif shape.file is not None and not (scene.source_dir / shape.file).resolve().is_file():
+            problems.append(f"{key}.file: file not found: {(scene.source_dir / shape.file).resolve()}")
+    if shape.type == "glass" and None not in (shape.radius, shape.thickness, shape.height):
+        if shape.thickness >= min(shape.radius, shape.height):
+            problems.append(f"{key}.thickness: must be below the radius and the height")
+    return problems
+
+
+def rotation_problems(key: str, value, d: int) -> list[str]:
     if d == 2 and not isinstance(value, (int, float)):
         return [f"{key}: in 2D an angle in radians (a number)"]
     if d == 3 and (isinstance(value, (int, float)) and value != 0 or isinstance(value, list) and len(value) != 3):
@@ -245,7 +263,7 @@ def _motion_problems(key: str, m, d: int, position) -> list[str]:
     for name, value in vecs.items():
         if value is not None and len(value) != d:
             problems.append(f"{key}.{name}: must have {d} entries (dim is {d}), got {len(value)}")
-    problems += _rotation_problems(f"{key}.angular_velocity", m.angular_velocity, d)
+    problems += rotation_problems(f"{key}.angular_velocity", m.angular_velocity, d)
     if m.type == "constant" and m.velocity is None:
         problems.append(f"{key}.velocity: required for a constant motion")
     if m.type == "piecewise":
@@ -254,7 +272,7 @@ def _motion_problems(key: str, m, d: int, position) -> list[str]:
         for j, seg in enumerate(m.segments):
             if len(seg.velocity) != d:
                 problems.append(f"{key}.segments[{j}].velocity: must have {d} entries (dim is {d})")
-            problems += _rotation_problems(f"{key}.segments[{j}].angular_velocity", seg.angular_velocity, d)
+            problems += rotation_problems(f"{key}.segments[{j}].angular_velocity", seg.angular_velocity, d)
     if m.type == "shake" and (m.amplitude is None or m.frequency is None):
         problems.append(f"{key}: a shake needs amplitude and frequency")
     if m.type == "waypoints":

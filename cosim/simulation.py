@@ -193,44 +193,108 @@ class Simulation:
         self.controls = build_controls(scene, self.slices, self.mpm.state()["x"])
         self.step_index = 0
         self.max_cfl = 0.0
-        # called as before_step(t0, dt, K) before each engine step: moving boundaries set their states
+        # called as before_step(t0, dt, K) before each MPM step without DART: moving boundaries set their states
         self.before_step = None
         self.rigid = None
-        if scene.rigid is not None:
+        self.articulated = None  # DART skeletons (cosim.articulated.Articulated)
+        self.coupler = None  # MPM <-> DART (cosim.couplers.mpm_rigid)
+        self.last_coupled = None  # the coupled record of the last step
+        if scene.rigid is not None or scene.articulated is not None:
             self._build_rigid()
 
     def _build_rigid(self) -> None:
-        """Kinematic rigid bodies as SDF boundaries under the scene's contact model."""
-        from cosim.couplers.contact import (
-            ForecastContact,
-            GridContact,
-            ParticlePenalty,
-            RigidBoundaries,
-            kinematic_states,
-        )
+        """Rigid bodies as SDF boundaries under the scene's contact model: the kinematic ones
+        (``rigid:``) first, then the coupled links of DART skeletons (``articulated:``)."""
+        from cosim.couplers.contact import ForecastContact, GridContact, ParticlePenalty, RigidBoundaries
         from cosim.couplers.sdf import shape_sdf
 
         scene = self.scene
-        grids, motions = [], []
-        for i, spec in enumerate(scene.rigid.bodies):
+        names, shapes, grids, motions = [], [], [], []
+        for i, spec in enumerate(scene.rigid.bodies if scene.rigid else []):
             spacing = spec.sdf_spacing or 0.5 * self.dx
             grids.append(
                 shape_sdf(spec.shape, scene.dim, spacing, 3 * self.dx, scene.source_dir, f"rigid.bodies[{i}].shape")
             )
             motions.append(build_motion(spec, scene.dim))
+            names.append(spec.name)
+            shapes.append(spec.shape)
+        articulated = None
+        if scene.articulated is not None:
+            from cosim.articulated import build_articulated, link_shapes
+
+            articulated = build_articulated(scene, self.dx)
+            names += articulated.names
+            shapes += link_shapes(scene, articulated.names)
+            grids += articulated.grids
         slots = max(scene.time.max_substeps, self.grad_substeps)
-        boundaries = RigidBoundaries(grids, scene.dim, slots, requires_grad=self.requires_grad)
+        boundaries = RigidBoundaries(grids, scene.dim, slots, requires_grad=self.requires_grad) if grids else None
         contact = scene.contact
-        if contact.model == "grid":
+        if boundaries is None:
+            pass
+        elif contact.model == "grid":
             GridContact(self.mpm, boundaries, contact.friction, contact.band)
         elif contact.model == "forecast":
             ForecastContact(self.mpm, boundaries, contact.friction, contact.alpha, contact.threshold, contact.smoothing)
         else:
             ParticlePenalty(self.mpm, boundaries, contact.stiffness, contact.friction)
-        self.rigid = RigidScene(
-            [b.name for b in scene.rigid.bodies], [b.shape for b in scene.rigid.bodies], grids, motions, boundaries
-        )
-        self.before_step = lambda t0, dt, K: boundaries.set_states(*kinematic_states(motions, t0, dt, K))
+        coupler = None
+        if articulated is not None:
+            from cosim.articulated import action_sequence
+            from cosim.couplers.mpm_rigid import MPMRigidCoupler
+
+            coupler = MPMRigidCoupler(articulated.engine, boundaries, articulated.coupled, len(motions), scene.dim)
+            self.articulated = articulated
+            self.coupler = coupler
+            self.rigid_state0 = articulated.engine.state()
+            self.rigid_actions = action_sequence(scene, articulated.engine.action_size, articulated.n_segments)
+        self.rigid = RigidScene(names, shapes, grids, motions, boundaries, coupler, scene.dim)
+        if boundaries is not None:
+            self.before_step = self.set_boundaries
+
+    def set_boundaries(self, t0: float, dt: float, K: int, bodies=None) -> None:
+        """Per-substep states of every rigid boundary for the step starting at t0: kinematic bodies
+        from their motions, DART links from ``bodies`` (default: the rigid engine's current state)."""
+        from cosim.couplers.contact import kinematic_states
+
+        parts = []
+        if self.rigid.motions:
+            parts.append(kinematic_states(self.rigid.motions, t0, dt, K))
+        if self.coupler is not None:
+            bodies = self.coupler.current_bodies() if bodies is None else bodies
+            parts.append(self.coupler.boundary_arrays(bodies, dt, K))
+        arrays = [np.concatenate([p[i] for p in parts], axis=1) for i in range(4)]
+        self.rigid.boundaries.set_states(*arrays)
+
+    def step_vjp(self, record, grad: dict[str, np.ndarray]) -> dict:
+        """Vector-Jacobian product of one recorded macro step (the tape's ``step_vjp``).
+
+        MPM only: restore the step's boundaries and run the MPM vjp. Coupled (the paper's
+        backward equations): DART's vjp gives dL/ds_D^n (own dynamics), dL/da^n and dL/dF^n;
+        dL/dF^n seeds the reaction adjoints, so the MPM vjp returns dL/ds_M^n along both
+        paths and the boundary adjoints, which the coupler takes back to dL/ds_D^n.
+        """
+        from cosim.engines.mpm import STATE_KEYS
+
+        mpm_grad = {k: grad[k] for k in STATE_KEYS}
+        if self.coupler is None:
+            if self.before_step is not None:
+                self.before_step(record.time, record.dt, record.substeps)
+            return self.mpm.vjp(record.as_dict(), mpm_grad)
+        c = record.coupled
+        g_dynamics, g_action, g_wrenches = self.articulated.engine.vjp(c.rigid, grad["rigid"])
+        arms = self.coupler.seed_reaction_grads(c, g_wrenches)
+        self.set_boundaries(record.time, record.dt, record.substeps, c.bodies)
+        out = self.mpm.vjp(record.as_dict(), mpm_grad)
+        out["state"]["rigid"] = g_dynamics + self.coupler.boundary_vjp(c, arms)
+        out["action"] = g_action
+        return out
+
+    def action(self, n: int, actions: np.ndarray | None = None) -> np.ndarray | None:
+        """The rigid action of macro step n from a sequence (default: the scene's), held ``hold`` steps."""
+        if self.articulated is None:
+            return None
+        seq = self.rigid_actions if actions is None else actions
+        return seq[min(n // self.articulated.hold, len(seq) - 1)]
 
     # ------------------------------------------------------------ time stepping
     def _auto_substeps(self, speed: float) -> int:
@@ -251,9 +315,12 @@ class Simulation:
             full[c.indices] += a[n]
         return full
 
-    def step(self, impulse: np.ndarray | None = None):
-        """One macro step with checks; returns the engine's StepInfo."""
+    def step(self, impulse: np.ndarray | None = None, action: np.ndarray | None = None):
+        """One macro step with checks (MPM, then DART with the averaged reactions when the
+        scene has skeletons); returns the MPM's StepInfo. ``action``: the rigid action
+        (default: the scene's sequence)."""
         state = self.mpm.state()
+        bodies = self.coupler.current_bodies() if self.coupler is not None else None
         speed = float(np.abs(state["v"]).max()) + np.linalg.norm(self.scene.gravity) * self.frame_dt
         fixed = self.scene.time.substeps or (self.grad_substeps if self.requires_grad else 0)
         K = fixed or self._auto_substeps(speed)
@@ -264,7 +331,9 @@ class Simulation:
                     f"{self.scene.time.max_substeps} (max speed {speed:.3g} m/s): the simulation is blowing up or "
                     "frame_dt is too long"
                 )
-            if self.before_step is not None:
+            if self.coupler is not None:
+                self.set_boundaries(self.step_index * self.frame_dt, self.frame_dt / K, K, bodies)
+            elif self.before_step is not None:
                 self.before_step(self.step_index * self.frame_dt, self.frame_dt / K, K)
             info = self.mpm.step(self.frame_dt / K, K, impulse)
             after = self.mpm.state()
@@ -286,6 +355,9 @@ class Simulation:
             self.mpm.set_state(state)
             K *= 2
         self._check_domain(after)
+        if self.coupler is not None:
+            act = self.action(self.step_index) if action is None else action
+            self.last_coupled = self.coupler.finish_step(bodies, act, self.frame_dt / K, K)
         self.max_cfl = max(self.max_cfl, cfl)
         self.step_index += 1
         return info
@@ -331,13 +403,21 @@ class RigidScene:
     """The scene's rigid bodies: names, SDF grids, motions and their MPM boundary."""
 
     names: list[str]
-    shapes: list  # scene RigidShape specs
+    shapes: list  # scene RigidShape specs (None: a URDF link)
     grids: list
-    motions: list
+    motions: list  # of the kinematic bodies, which come first
     boundaries: object
+    coupler: object = None  # DART links after them (cosim.couplers.mpm_rigid)
+    dim: int = 3
 
     def poses(self, t: float) -> list[tuple[np.ndarray, np.ndarray]]:
-        return [m.pose(t) for m in self.motions]
+        """(position, rotation) of every body: kinematic ones at time t, DART links now."""
+        out = [m.pose(t) for m in self.motions]
+        if self.coupler is not None:
+            b = self.coupler.current_bodies()
+            d = self.dim
+            out += [(p[:d].copy(), R[:d, :d].copy()) for p, R in zip(b.pos, b.R)]
+        return out
 
     def particles_inside(self, x: np.ndarray, t: float) -> dict[str, int]:
         """How many particles sit inside each body (signed distance < 0) at time t."""
@@ -354,7 +434,7 @@ class RigidScene:
         return {
             name: int(np.sum(in_cavity(shape, (x - p) @ R)))
             for name, shape, (p, R) in zip(self.names, self.shapes, self.poses(t))
-            if is_container(shape)
+            if shape is not None and is_container(shape)
         }
 
 

@@ -1,11 +1,13 @@
 """The tape: per-macro-step records, replayed in reverse through each engine's vjp.
 
-Forward, the runner pushes one record per macro step: the engine state at the
+Forward, the runner pushes one record per macro step: the MPM state at the
 start of the step (a host-side checkpoint), the step's inputs (control
-impulses) and its substep count and dt. Backward, the tape walks the records
-from last to first and calls ``engine.vjp(record, dL/dstate_after)``, which
-recomputes that step's substeps from its checkpoint and returns dL/dstate_before
-plus the gradients of the step's inputs and parameters. Memory is one state per
+impulses), its substep count and dt, and for coupled scenes the rigid engine's
+record and the boundary states (``coupled``). Backward, the tape walks the
+records from last to first and calls ``step_vjp(record, dL/dstate_after)`` (the
+simulation's: the MPM vjp, which recomputes that step's substeps from its
+checkpoint, chained with DART's for coupled scenes), which returns
+dL/dstate_before plus the gradients of the step's inputs and parameters. Memory is one state per
 macro step on the host plus one macro step of substeps in the engine:
 O(S N + K N), never O(S K N).
 """
@@ -25,6 +27,7 @@ class StepRecord:
     impulse: np.ndarray | None = None  # (N, d) [N s] per-particle control impulse
     token: int = -1  # the engine's id of this forward step (lets it skip a recompute)
     time: float = 0.0  # [s] at the start of the step (moving boundaries are restored from it)
+    coupled: object = None  # cosim.couplers.mpm_rigid.CoupledRecord of a coupled step
 
     def as_dict(self) -> dict:
         return {
@@ -45,9 +48,10 @@ class StepRecord:
 class Gradients:
     """dL/d(inputs) of a whole rollout."""
 
-    state0: dict[str, np.ndarray]  # dL/d(initial state): x, v, C, F
+    state0: dict[str, np.ndarray]  # dL/d(initial state): x, v, C, F (and "rigid" when coupled)
     impulse: list[np.ndarray | None]  # per macro step, (N, d)
     params: dict[str, np.ndarray] = field(default_factory=dict)  # per-body E, nu
+    action: list[np.ndarray | None] = field(default_factory=list)  # per macro step, rigid actions
 
 
 class Tape:
@@ -67,22 +71,22 @@ class Tape:
         """Host memory held by the checkpoints [bytes]."""
         return sum(r.nbytes for r in self.records)
 
-    def backward(self, engine, grad_final: dict[str, np.ndarray], before_step=None) -> Gradients:
+    def backward(self, step_vjp, grad_final: dict[str, np.ndarray]) -> Gradients:
         """Chain rule over the recorded steps: dL/ds^n = dL/ds^{n+1} ds^{n+1}/ds^n.
 
-        ``before_step(t0, dt, K)`` restores a step's moving-boundary states before
-        its vjp recomputes it (the simulation's hook; None without boundaries).
+        ``step_vjp(record, dL/dstate_after)`` differentiates one step (``Simulation.step_vjp``)
+        and returns a dict with "state" and the step's input and parameter gradients.
         """
         grad_state = grad_final
-        impulses: list[np.ndarray | None] = [None] * len(self.records)
+        n_steps = len(self.records)
+        impulses: list[np.ndarray | None] = [None] * n_steps
+        actions: list[np.ndarray | None] = [None] * n_steps
         params: dict[str, np.ndarray] = {}
-        for n in reversed(range(len(self.records))):
-            rec = self.records[n]
-            if before_step is not None:
-                before_step(rec.time, rec.dt, rec.substeps)
-            out = engine.vjp(rec.as_dict(), grad_state)
+        for n in reversed(range(n_steps)):
+            out = step_vjp(self.records[n], grad_state)
             grad_state = out["state"]
             impulses[n] = out.get("impulse")
+            actions[n] = out.get("action")
             for key in ("E", "nu"):
                 params[key] = params.get(key, 0.0) + out[key]
-        return Gradients(state0=grad_state, impulse=impulses, params=params)
+        return Gradients(state0=grad_state, impulse=impulses, params=params, action=actions)

@@ -60,10 +60,21 @@ class RigidBoundaries:
         """dL/d(body states) of substeps 0..K-1 after a vjp."""
         return {k: getattr(self, k).grad.to_numpy()[:K].astype(np.float64) for k in ("pos", "rot", "vel", "omega")}
 
+    def seed_reaction_grads(self, impulse: np.ndarray, angular: np.ndarray) -> None:
+        """dL/d(reactions) of the step about to be differentiated: (K, n, d) and (K, n, 1|3).
+        The engine's vjp zeroes adjoints first (``zero_grad``), which then writes these."""
+        self._seed = (impulse, angular)
+
     def zero_grad(self) -> None:
         for fld in (self.pos, self.rot, self.vel, self.omega, self.impulse, self.angular_impulse):
             if fld.grad is not None:
                 fld.grad.fill(0)
+        seed, self._seed = getattr(self, "_seed", None), None
+        if seed is not None:
+            for fld, values in zip((self.impulse, self.angular_impulse), seed):
+                full = np.zeros(fld.shape + (values.shape[-1],), dtype=self.real)
+                full[: len(values)] = values
+                fld.grad.from_numpy(full)
 
     @ti.func
     def spin(self, w, r):

@@ -146,25 +146,71 @@ def _grid_over(lo: np.ndarray, hi: np.ndarray, spacing: float, padding: float) -
     return origin, tuple(int(c) for c in counts)
 
 
-def primitive_sdf(kind: str, dim: int, spacing: float, padding: float, **size) -> SDFGrid:
-    """A primitive's SDF sampled on its padded bounding box."""
-    ext = primitive_extent(kind, dim, **size)
-    origin, counts = _grid_over(-ext, ext, spacing, padding)
+def function_sdf(distance, lo: np.ndarray, hi: np.ndarray, spacing: float, padding: float) -> SDFGrid:
+    """A closed-form SDF ``distance(points (..., d))`` sampled over the box [lo, hi] plus padding."""
+    origin, counts = _grid_over(np.asarray(lo, float), np.asarray(hi, float), spacing, padding)
     grid = SDFGrid(origin, spacing, np.zeros(counts))
     nodes = grid.nodes()
-    grid.values = primitive_distance(kind, nodes, **size)
+    grid.values = distance(nodes)
     # the closed form's gradient by central differences far below the spacing (exact away
     # from kinks; on a medial axis it averages the two sides, which the lookup normalises)
     eps = 1e-6 * spacing
     grid.normals = np.stack(
-        [
-            (primitive_distance(kind, nodes + eps * e, **size) - primitive_distance(kind, nodes - eps * e, **size))
-            / (2 * eps)
-            for e in np.eye(dim)
-        ],
-        axis=-1,
+        [(distance(nodes + eps * e) - distance(nodes - eps * e)) / (2 * eps) for e in np.eye(len(lo))], axis=-1
     )
     return grid
+
+
+def primitive_sdf(kind: str, dim: int, spacing: float, padding: float, **size) -> SDFGrid:
+    """A primitive's SDF sampled on its padded bounding box."""
+    ext = primitive_extent(kind, dim, **size)
+    return function_sdf(lambda p: primitive_distance(kind, p, **size), -ext, ext, spacing, padding)
+
+
+# DART's shape conventions (cosim.engines.rigid_build.ShapeSpec): cylinders and capsules along z
+_Z_TO_Y = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])  # (x, y, z) -> (x, z, -y)
+
+
+def _spec_distance(spec, p: np.ndarray) -> np.ndarray:
+    """Signed distance of a rigid-engine ShapeSpec at points in its own frame."""
+    if spec.kind == "box":
+        return primitive_distance("box", p, half=0.5 * np.asarray(spec.size, float))
+    if spec.kind == "sphere":
+        return primitive_distance("sphere", p, radius=spec.radius)
+    return primitive_distance(spec.kind, p @ _Z_TO_Y.T, radius=spec.radius, height=spec.height)
+
+
+def _spec_half_extent(spec) -> np.ndarray:
+    if spec.kind == "box":
+        return 0.5 * np.asarray(spec.size, float)
+    if spec.kind == "sphere":
+        return np.full(3, spec.radius)
+    cap = spec.radius if spec.kind == "capsule" else 0.0
+    return np.array([spec.radius, spec.radius, 0.5 * spec.height + cap])
+
+
+def shape_spec_sdf(geometry: list, spacing: float, padding: float, key: str) -> SDFGrid:
+    """The body-frame SDF of a link's shapes [(ShapeSpec, 4x4 pose in the body frame)] (URDF
+    collision geometry): one mesh, or the union (minimum) of primitives."""
+    import trimesh
+
+    meshes = [(g, T) for g, T in geometry if g.kind == "mesh"]
+    if meshes:
+        if len(geometry) > 1:
+            raise SceneError(f"{key}: a link with a mesh must have no other collision shapes (got {len(geometry)})")
+        spec, T = meshes[0]
+        mesh = trimesh.load(spec.mesh, force="mesh")
+        mesh.apply_transform(np.diag([*np.broadcast_to(np.asarray(spec.scale, float), 3), 1.0]))
+        mesh.apply_transform(T)
+        return mesh_sdf(mesh, spacing, padding, key=f"{key} ({Path(spec.mesh).name})")
+    corners = np.array(list(np.ndindex(2, 2, 2))) * 2.0 - 1.0
+    points = [T[:3, :3] @ (corners * _spec_half_extent(g)).T + T[:3, 3:4] for g, T in geometry]
+    points = np.concatenate(points, axis=1).T
+
+    def union(p: np.ndarray) -> np.ndarray:
+        return np.min([_spec_distance(g, (p - T[:3, 3]) @ T[:3, :3]) for g, T in geometry], axis=0)
+
+    return function_sdf(union, points.min(axis=0), points.max(axis=0), spacing, padding)
 
 
 # ---------------------------------------------------------------- meshes

@@ -425,6 +425,18 @@ class RigidEngine:
 
     # --------------------------------------------------------------------------------------- geometry
 
+    def dof_indices(self, skeleton: str, joint: str) -> np.ndarray:
+        """Indices into the positions block of ``state()`` (add ``dofs`` for velocities) of a joint's dofs."""
+        names = [s.name for s in self.specs]
+        if skeleton not in names:
+            raise InputError(f"no skeleton '{skeleton}'; skeletons: {names}")
+        k = names.index(skeleton)
+        joints = {j.getName(): j for j in self.skeletons[k].getJoints()}
+        if joint not in joints:
+            raise InputError(f"skeleton '{skeleton}' has no joint '{joint}'; joints: {sorted(joints)}")
+        j = joints[joint]
+        return np.array([self._offsets[k] + j.getIndexInSkeleton(i) for i in range(j.getNumDofs())], dtype=int)
+
     def body_index(self, name: str) -> int:
         """Index in ``body_names`` of "skeleton/link" or of a link name unique across skeletons."""
         if name in self.body_names:
