@@ -73,17 +73,18 @@ def _lift(v, dim: int, fill: float = 0.0):
     return None if v is None else tuple(list(v) + [fill] * (3 - len(v))) if dim == 2 else tuple(v)
 
 
-def _dart_shapes(shape, dim: int) -> list[ShapeSpec]:
+def _dart_shapes(shape, dim: int, offset) -> list[ShapeSpec]:
     """DART collision shapes of a scene shape (3D primitives; y-axis shapes turned onto DART's z)."""
     if dim == 2 or shape.type in ("mesh", "ring"):
         return []
+    at = tuple(offset) if offset is not None else (0.0, 0.0, 0.0)
     along_y = (-90.0, 0.0, 0.0)  # Rx(-90 deg) maps DART's z axis onto our y axis
     if shape.type == "box":
-        return [ShapeSpec("box", size=tuple(shape.size))]
+        return [ShapeSpec("box", size=tuple(shape.size), position=at)]
     if shape.type == "sphere":
-        return [ShapeSpec("sphere", radius=shape.radius)]
+        return [ShapeSpec("sphere", radius=shape.radius, position=at)]
     kind = "capsule" if shape.type == "capsule" else "cylinder"  # a glass collides as its outer cylinder
-    return [ShapeSpec(kind, radius=shape.radius, height=shape.height, rotation=along_y)]
+    return [ShapeSpec(kind, radius=shape.radius, height=shape.height, position=at, rotation=along_y)]
 
 
 def _joint_values(value):
@@ -103,7 +104,7 @@ def _link_spec(link, dim: int, grid: SDFGrid, collide: bool) -> LinkSpec:
         axis = _lift(j.axis, dim) or (0.0, 0.0, 1.0)
     return LinkSpec(
         name=link.name,
-        shapes=_dart_shapes(link.shape, dim) if collide else [],
+        shapes=_dart_shapes(link.shape, dim, link.offset) if collide else [],
         mass=mass,
         com=tuple(com),
         inertia=inertia,
@@ -127,6 +128,8 @@ def _skeleton_spec(skel, dim: int, dx: float, source_dir: Path, key: str) -> tup
     for i, link in enumerate(skel.links):
         spacing = link.sdf_spacing or 0.5 * dx
         grid = shape_sdf(link.shape, dim, spacing, 3 * dx, source_dir, f"{key}.links[{i}].shape")
+        if link.offset is not None:
+            grid.origin = grid.origin + np.asarray(link.offset, float)
         grids[link.name] = grid
         links.append(_link_spec(link, dim, grid, skel.collide))
     spec = SkeletonSpec(name=skel.name, links=links, controls=dict(skel.controls), collide=skel.collide)

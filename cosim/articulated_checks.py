@@ -62,6 +62,8 @@ def _links_problems(key: str, skel, scene: Scene) -> list[str]:
             )
         if joint.type == "ball" and d == 2:
             problems.append(f"{base}.joint.type: a ball joint is 3D; in 2D use revolute")
+        if link.offset is not None and len(link.offset) != d:
+            problems.append(f"{base}.offset: must have {d} entries (dim is {d}), got {len(link.offset)}")
         if joint.position is not None and len(joint.position) != d:
             problems.append(f"{base}.joint.position: must have {d} entries (dim is {d}), got {len(joint.position)}")
         problems += rotation_problems(f"{base}.joint.rotation", joint.rotation, d)

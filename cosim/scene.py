@@ -246,6 +246,7 @@ class LinkSceneSpec(Strict):
     shape: RigidShape
     density: Positive | None = None  # [kg/m^3] (2D: per metre of depth, like the MPM)
     mass: Positive | None = None  # [kg] instead of density
+    offset: Vec | None = None  # [m] the shape's centre in the link frame (e.g. a door's middle off its hinge)
     joint: JointSceneSpec = JointSceneSpec()
     couple: bool = True  # the MPM sees it (False: costs nothing in the MPM)
     sdf_spacing: Positive | None = None  # [m] default dx / 2

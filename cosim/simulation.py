@@ -250,6 +250,18 @@ class Simulation:
         self.rigid = RigidScene(names, shapes, grids, motions, boundaries, coupler, scene.dim)
         if boundaries is not None:
             self.before_step = self.set_boundaries
+        self._check_start_outside_rigid()
+
+    def _check_start_outside_rigid(self) -> None:
+        """Material starting inside a rigid body would be expelled at once with a huge reaction
+        (a floating box started half under water was launched upwards: measured), so refuse it."""
+        deep = self.rigid.particles_inside(self.mpm.state()["x"], 0.0, depth=0.5 * self.dx)
+        for body, count in deep.items():
+            if count:
+                raise SceneError(
+                    f"{count} particles start more than dx/2 inside rigid body '{body}'; move the body or the "
+                    "material so that they do not overlap at t = 0"
+                )
 
     def set_boundaries(self, t0: float, dt: float, K: int, bodies=None) -> None:
         """Per-substep states of every rigid boundary for the step starting at t0: kinematic bodies
@@ -283,7 +295,8 @@ class Simulation:
         c = record.coupled
         g_dynamics, g_action, g_wrenches = self.articulated.engine.vjp(c.rigid, grad["rigid"])
         arms = self.coupler.seed_reaction_grads(c, g_wrenches)
-        self.set_boundaries(record.time, record.dt, record.substeps, c.bodies)
+        if self.rigid.boundaries is not None:
+            self.set_boundaries(record.time, record.dt, record.substeps, c.bodies)
         out = self.mpm.vjp(record.as_dict(), mpm_grad)
         out["state"]["rigid"] = g_dynamics + self.coupler.boundary_vjp(c, arms)
         out["action"] = g_action
@@ -331,7 +344,7 @@ class Simulation:
                     f"{self.scene.time.max_substeps} (max speed {speed:.3g} m/s): the simulation is blowing up or "
                     "frame_dt is too long"
                 )
-            if self.coupler is not None:
+            if self.coupler is not None and self.rigid.boundaries is not None:
                 self.set_boundaries(self.step_index * self.frame_dt, self.frame_dt / K, K, bodies)
             elif self.before_step is not None:
                 self.before_step(self.step_index * self.frame_dt, self.frame_dt / K, K)
@@ -419,12 +432,12 @@ class RigidScene:
             out += [(p[:d].copy(), R[:d, :d].copy()) for p, R in zip(b.pos, b.R)]
         return out
 
-    def particles_inside(self, x: np.ndarray, t: float) -> dict[str, int]:
-        """How many particles sit inside each body (signed distance < 0) at time t."""
+    def particles_inside(self, x: np.ndarray, t: float, depth: float = 0.0) -> dict[str, int]:
+        """How many particles sit inside each body (signed distance < -depth) at time t."""
         out = {}
         for name, grid, (p, R) in zip(self.names, self.grids, self.poses(t)):
             d, _ = grid.sample((x - p) @ R)  # world to body frame: R^T (x - p)
-            out[name] = int(np.sum(d < 0))
+            out[name] = int(np.sum(d < -depth))
         return out
 
     def particles_held(self, x: np.ndarray, t: float) -> dict[str, int]:

@@ -168,6 +168,9 @@ class MPMRigidCoupler:
 
     def finish_step(self, bodies: BodyStates, action: np.ndarray | None, dt: float, K: int) -> CoupledRecord:
         """After the MPM's K substeps: average the reactions and step DART."""
+        if not self.coupled:  # nothing touches the MPM
+            zero = np.zeros((K, 0, 3))
+            return CoupledRecord(self.rigid.step(action, None), bodies, zero, zero, dt, K)
         impulse, angular = self.boundaries.reactions(K)
         J, L = lift_reactions(impulse[:, self.slots], angular[:, self.slots], self.dim)
         pos_k = substep_states(bodies, dt, K).pos
@@ -179,6 +182,8 @@ class MPMRigidCoupler:
     def seed_reaction_grads(self, rec: CoupledRecord, grad_wrenches: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Put dL/dF on the reaction adjoints of the coupled slots; returns the torque-arm gradients
         (dL/dp_k (K, m, 3), dL/dp (m, 3))."""
+        if not self.coupled:
+            return np.zeros((rec.substeps, 0, 3)), np.zeros((0, 3))
         gJ, gL, gpk, gp = average_wrench_vjp(
             grad_wrenches[self.coupled], rec.J, rec.pos_k, rec.bodies.pos, rec.substeps * rec.dt
         )
@@ -193,6 +198,8 @@ class MPMRigidCoupler:
 
     def boundary_vjp(self, rec: CoupledRecord, arm_grads: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
         """dL/ds_D^n through the boundary states (after the MPM vjp filled their adjoints)."""
+        if not self.coupled:
+            return np.zeros(2 * self.rigid.dofs)
         grads = self.boundaries.state_grads(rec.substeps)
         per_substep = from_mpm({k: v[:, self.slots] for k, v in grads.items()}, self.dim)
         per_substep.pos = per_substep.pos + arm_grads[0]

@@ -1,0 +1,282 @@
+"""Two-way MPM-DART coupling: momentum and angular momentum exchange, hydrostatics, buoyancy,
+and adjoint gradients across the coupling against central differences (float64)."""
+
+import numpy as np
+import pytest
+from conftest import make_scene
+
+from cosim.adjoint.gradcheck import check_gradients
+from cosim.adjoint.objective import Objective
+from cosim.errors import SceneError
+from cosim.simulation import Simulation
+
+MODELS = ["grid", "particle", "forecast"]
+
+
+def elastic(name, center, size, velocity, E=2e4, density=500.0):
+    return {
+        "name": name,
+        "material": {"type": "elastic", "E": E, "nu": 0.3, "density": density},
+        "shape": {"type": "box", "center": center, "size": size},
+        "velocity": velocity,
+    }
+
+
+def coupled_scene(bodies, skeletons, model, cells=48, steps=60, gravity=(0.0, 0.0), walls="none", **extra):
+    return make_scene(
+        steps=steps,
+        time={"frame_dt": 2e-3, "substeps": extra.pop("substeps", "auto")},
+        mpm={"grid": {"cells": cells}, "boundary": {"type": walls}, "gravity": list(gravity), "bodies": bodies},
+        articulated={"skeletons": skeletons, **extra.pop("articulated", {})},
+        contact={"model": model, **extra.pop("contact", {})},
+        **extra,
+    )
+
+
+def free_box(name, position, size, density, **joint):
+    return {
+        "name": name,
+        "links": [
+            {
+                "name": name,
+                "shape": {"type": "box", "size": size},
+                "density": density,
+                "joint": {"type": "free", "position": position, **joint},
+            }
+        ],
+    }
+
+
+@pytest.mark.parametrize("model", MODELS)
+def test_momentum_is_exchanged_with_a_free_box(model):
+    """Gravity off: an elastic block thrown at a free box; box + particles keep their linear
+    momentum within 1% through the collision, and the box takes a real share of it."""
+    scene = coupled_scene(
+                [elastic("ball", [0.3, 0.5], [0.14, 0.14], [2.0, 0.0])],
+        [free_box("box", [0.55, 0.5], [0.15, 0.15], 400.0)],
+        model,
+    )
+    sim = Simulation(scene)
+    box = sim.articulated.engine.skeletons[0]
+
+    def momenta():
+        v = sim.mpm.state()["v"]
+        return (sim.mpm.mass[:, None] * v).sum(axis=0), box.getMass() * box.getCOMLinearVelocity()[:2]
+
+    soft0, rigid0 = momenta()
+    total0 = soft0 + rigid0
+    for _ in range(sim.steps):
+        sim.step()
+    soft, rigid = momenta()
+    assert np.linalg.norm(soft + rigid - total0) <= 0.01 * np.linalg.norm(total0)
+    assert rigid[0] > 0.3 * total0[0]  # the box was pushed
+
+
+@pytest.mark.parametrize("model", MODELS)
+def test_liquid_at_rest_in_a_welded_cup_weighs_on_it(model):
+    """Hydrostatics: water at rest in a cup held by a weld joint; the reaction force on the cup,
+    averaged over the second half of 0.6 s, equals the water's weight within 5%."""
+    scene = make_scene(
+        steps=150,
+        time={"frame_dt": 4e-3, "substeps": "auto"},
+        mpm={
+            "grid": {"cells": 32},
+            "bodies": [
+                {
+                    "name": "water",
+                    "material": {"type": "liquid", "E": 2e4, "nu": 0.3, "viscosity": 1.0},
+                    "shape": {"type": "box", "center": [0.5, 0.4], "size": [0.24, 0.16]},
+                    "hydrostatic": True,
+                }
+            ],
+        },
+        articulated={
+            "skeletons": [
+                {
+                    "name": "cup",
+                    "links": [
+                        {
+                            "name": "cup",
+                            "shape": {"type": "glass", "radius": 0.15, "height": 0.3, "thickness": 0.03},
+                            "density": 1000,
+                            "joint": {"type": "weld", "position": [0.5, 0.44]},
+                        }
+                    ],
+                }
+            ]
+        },
+        contact={"model": model},
+    )
+    sim = Simulation(scene)
+    weight = sim.mpm.mass.sum() * 9.81
+    forces = []
+    for n in range(sim.steps):
+        sim.step()
+        forces.append(sim.last_coupled.rigid.wrenches[0, 3:5])
+    mean = np.mean(forces[sim.steps // 2 :], axis=0)
+    assert abs(-mean[1] - weight) <= 0.05 * weight, (mean, weight)
+    assert abs(mean[0]) <= 0.02 * weight  # no net sideways push
+
+
+def test_a_light_box_floats_with_the_submerged_fraction_of_its_density_ratio():
+    """Archimedes (forecast contact): a free box of density 500 dropped on water of density 1000
+    settles half submerged; box height and water surface averaged over the last 0.8 s (the
+    surface: median over columns away from the box of the top particle + dx/4)."""
+    cells, steps = 64, 400
+    dx = 1 / cells
+    floor, width = 3 * dx, 1 - 6 * dx
+    scene = make_scene(
+        steps=steps,
+        time={"frame_dt": 4e-3, "substeps": "auto"},
+        mpm={
+            "grid": {"cells": cells},
+            "bodies": [
+                {
+                    "name": "water",
+                    "material": {"type": "liquid", "E": 2e5, "nu": 0.3, "viscosity": 3.0},
+                    "shape": {"type": "box", "center": [0.5, floor + 0.11], "size": [width, 0.22]},
+                    "hydrostatic": True,
+                }
+            ],
+        },
+        articulated={"skeletons": [free_box("box", [0.5, floor + 0.28], [0.24, 0.12], 500.0)]},
+        contact={"model": "forecast"},
+    )
+    sim = Simulation(scene)
+    engine = sim.articulated.engine
+    heights, surfaces = [], []
+    for n in range(steps):
+        sim.step()
+        if n >= steps // 2:
+            heights.append(engine.body_states()["position"][0, 1])
+            x = sim.mpm.state()["x"]
+            far = x[np.abs(x[:, 0] - 0.5) > 0.2]
+            columns = np.floor(far[:, 0] / dx).astype(int)
+            surfaces.append(np.median([far[columns == c, 1].max() for c in np.unique(columns)]) + dx / 4)
+    submerged = (np.mean(surfaces) - (np.mean(heights) - 0.06)) / 0.12
+    assert abs(submerged - 0.5) <= 0.05, submerged  # 10% of the density ratio 0.5
+
+
+@pytest.mark.parametrize("model", ["grid", "forecast"])
+def test_a_hinged_door_turns_by_the_angular_impulse_it_receives(model):
+    """Gravity off: a block thrown at a door hanging from a hinge below the hinge turns it the
+    positive way (counter-clockwise); the angle equals the one integrated from the reaction
+    torques handed to DART, and the door's angular momentum about the hinge equals the one the
+    block lost (within 2%: the block's APIC spin is not counted)."""
+    hinge = np.array([0.65, 0.75])
+    door = {
+        "name": "door",
+        "links": [
+            {
+                "name": "panel",
+                "shape": {"type": "box", "size": [0.05, 0.4]},
+                "offset": [0.0, -0.2],
+                "density": 300,
+                "joint": {"type": "revolute", "position": hinge.tolist()},
+            }
+        ],
+    }
+    scene = coupled_scene(
+        [elastic("block", [0.45, 0.52], [0.12, 0.12], [2.0, 0.0], E=5e4)], [door], model, steps=80
+    )
+    sim = Simulation(scene)
+    engine = sim.articulated.engine
+    inertia = engine.skeletons[0].getMassMatrix()[0, 0]
+
+    def block_spin():
+        s = sim.mpm.state()
+        r, v = s["x"] - hinge, s["v"]
+        return float(np.sum(sim.mpm.mass * (r[:, 0] * v[:, 1] - r[:, 1] * v[:, 0])))
+
+    spin0 = block_spin()
+    omega = angle = 0.0
+    for _ in range(sim.steps):
+        sim.step()
+        omega += sim.last_coupled.rigid.wrenches[0, 2] * sim.frame_dt / inertia
+        angle += sim.frame_dt * omega  # semi-implicit Euler, as DART
+    q, qd = engine.state()
+    assert q > 0.2  # turned, the right way
+    assert q == pytest.approx(angle, rel=1e-9) and qd == pytest.approx(omega, rel=1e-9)
+    assert inertia * qd == pytest.approx(spin0 - block_spin(), rel=0.02)
+
+
+def gradient_scene(model, loss):
+    """A soft block pushed by impulses and a light free box pushed by DART generalised forces
+    (x, y, angle) toward each other: 10 macro steps with contact in most of them."""
+    box = free_box("box", [0.615, 0.52], [0.15, 0.15], 100.0, qd0=[-1.0, 0.0, 0.0])
+    box["controls"] = {"box": "torque"}
+    return coupled_scene(
+                [elastic("ball", [0.45, 0.5], [0.14, 0.14], [0.5, 0.1], E=2e3)],
+        [box],
+        model,
+        cells=32,
+        steps=10,
+        substeps=4,
+        articulated={"actions": {"hold": 2, "initial": [-20.0, 5.0, 0.5]}},
+        controls=[{"body": "ball", "impulse": [0.0, 0.0]}],
+        contact={"friction": 0.2},
+        loss=loss,
+    )
+
+
+@pytest.mark.parametrize("model", MODELS)
+def test_gradients_from_rigid_actions_to_particles(model):
+    """rigid -> MPM: a loss on the block's particle positions w.r.t. the box's force/torque
+    actions (and the particles' initial velocities), adjoint vs central differences, 1e-5."""
+    scene = gradient_scene(model, {"type": "weighted_positions", "body": "ball"})
+    obj = Objective(Simulation(scene, requires_grad=True))
+    results = check_gradients(obj.evaluate, obj.initial_params(), ["action", "v0"], obj.natural_scales(), 2)
+    impulse, _ = obj.sim.rigid.boundaries.reactions(4)
+    assert np.abs(impulse).max() > 0  # in contact at the last step
+    for r in results:
+        assert abs(r.adjoint) > 0 and r.relative_error < 1e-5, r
+
+
+@pytest.mark.parametrize("model", MODELS)
+def test_gradients_from_particle_impulses_to_a_joint(model):
+    """MPM -> rigid: a loss on the box's joint coordinates w.r.t. the control impulses on the
+    soft block (the soft-gripper case) and the box's actions, adjoint vs central differences."""
+    loss = {"type": "joint_target", "skeleton": "box", "joint": "box", "target": [0.1, 0.0, 0.0]}
+    obj = Objective(Simulation(gradient_scene(model, loss), requires_grad=True))
+    results = check_gradients(obj.evaluate, obj.initial_params(), ["impulse", "action"], obj.natural_scales(), 2)
+    for r in results:
+        assert abs(r.adjoint) > 0 and r.relative_error < 1e-5, r
+
+
+def test_an_uncoupled_link_costs_nothing_in_the_mpm():
+    """couple: false keeps a link out of the MPM: no boundaries, no contact hook, and the soft
+    block passes through where the box is."""
+    skel = free_box("box", [0.55, 0.5], [0.15, 0.15], 400.0)
+    skel["links"][0]["couple"] = False
+    scene = coupled_scene([elastic("ball", [0.3, 0.5], [0.1, 0.1], [2.0, 0.0])], [skel], "grid")
+    sim = Simulation(scene)
+    assert sim.rigid.boundaries is None and sim.mpm._hook is None and sim.coupler.coupled == []
+    for _ in range(sim.steps):
+        sim.step()
+    assert sim.mpm.state()["x"][:, 0].mean() > 0.5  # went through
+
+
+@pytest.mark.parametrize(
+    "change,message",
+    [
+        (lambda s: s["links"][0].update(mass=3.0), "give density"),
+        (lambda s: s["links"][0]["joint"].update(parent="nowhere"), "not a link listed before"),
+        (lambda s: s.update(controls={"box": "wrench"}), "needs a 3D free joint"),
+        (lambda s: s.update(controls={"lid": "torque"}), "no such joint"),
+        (lambda s: s["links"][0]["joint"].update(q0=[0.0]), "has 3 coordinates"),
+        (lambda s: s.update(urdf="missing.urdf"), "either links"),
+    ],
+)
+def test_bad_articulated_sections_name_the_key_and_the_fix(change, message):
+    skel = free_box("box", [0.55, 0.5], [0.15, 0.15], 400.0)
+    change(skel)
+    with pytest.raises(SceneError, match=message):
+        coupled_scene([elastic("ball", [0.3, 0.5], [0.1, 0.1], [0.0, 0.0])], [skel], "grid")
+
+
+def test_material_starting_inside_a_rigid_link_is_refused():
+    scene = coupled_scene(
+        [elastic("ball", [0.5, 0.5], [0.1, 0.1], [0.0, 0.0])], [free_box("box", [0.5, 0.5], [0.15, 0.15], 400.0)], "grid"
+    )
+    with pytest.raises(SceneError, match="start more than dx/2 inside rigid body 'box/box'"):
+        Simulation(scene)
