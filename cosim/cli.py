@@ -43,6 +43,8 @@ def _load(args, **overrides):
 
 
 def cmd_run(args) -> int:
+    import numpy as np
+
     from cosim.run import run_scene
 
     scene = _load(args)
@@ -62,6 +64,8 @@ def cmd_run(args) -> int:
     if "particles_inside_rigid" in m:
         inside = ", ".join(f"{k}: {v}" for k, v in m["particles_inside_rigid"].items())
         print(f"contact model {m['contact_model']}: particles inside rigid bodies at the end: {inside}")
+    for skeleton, q in m.get("joint_positions", {}).items():
+        print(f"skeleton {skeleton}: joint positions {np.round(q, 4).tolist()}")
     if "particles_held" in m:
         held = ", ".join(f"{k}: {v}" for k, v in m["particles_held"].items())
         print(f"particles held by containers: {held}; elsewhere (spilled): {m['particles_elsewhere']}")

@@ -160,6 +160,11 @@ def run_scene(
             metrics["particles_elsewhere"] = (
                 len(x) - sum(held.values()) - sum(metrics["particles_inside_rigid"].values())
             )
+    if sim.articulated is not None:
+        engine = sim.articulated.engine
+        metrics["joint_positions"] = {
+            spec.name: skel.getPositions().tolist() for spec, skel in zip(engine.specs, engine.skeletons)
+        }
     name = recorder.write(out_dir, preview)
     if name:
         metrics["preview"] = name
