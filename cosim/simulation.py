@@ -441,14 +441,16 @@ class RigidScene:
         return out
 
     def particles_held(self, x: np.ndarray, t: float) -> dict[str, int]:
-        """How many particles each container body (glass, ring) holds in its cavity at time t."""
+        """How many particles each container body (glass, ring) holds in its cavity at time t
+        (not counting those inside its wall, which ``particles_inside`` counts)."""
         from cosim.couplers.sdf import in_cavity, is_container
 
-        return {
-            name: int(np.sum(in_cavity(shape, (x - p) @ R)))
-            for name, shape, (p, R) in zip(self.names, self.shapes, self.poses(t))
-            if shape is not None and is_container(shape)
-        }
+        out = {}
+        for name, shape, grid, (p, R) in zip(self.names, self.shapes, self.grids, self.poses(t)):
+            if shape is not None and is_container(shape):
+                local = (x - p) @ R
+                out[name] = int(np.sum(in_cavity(shape, local) & (grid.sample(local)[0] >= 0)))
+        return out
 
 
 def _wave_speed(body, dim: int) -> float:
