@@ -107,6 +107,8 @@ def cmd_gradcheck(args) -> int:
         print(
             f"{r.param:>8} {r.direction:>4} {r.adjoint:>16.9e} {r.finite_difference:>16.9e} {r.relative_error:>10.2e}"
         )
+    if all(r.adjoint == 0 and r.finite_difference == 0 for r in results):
+        print(f"warning: every gradient is zero over {steps} steps: the parameters do not reach the loss yet; use --steps")
     worst = max(r.relative_error for r in results)
     tol = args.tolerance or scene.gradient.tolerance
     print(f"max relative error: {worst:.3e} (tolerance {tol:g})")
@@ -172,6 +174,10 @@ def cmd_optimize(args) -> int:
 
 
 def cmd_bench(args) -> int:
+    if args.what == "coupling":
+        from cosim.bench_coupling import run_coupling_bench
+
+        return run_coupling_bench(Path(args.out), quick=args.quick, repeat=args.repeat)
     if args.what == "contact":
         from cosim.bench_contact import run_contact_bench
 
@@ -265,10 +271,10 @@ def make_parser() -> argparse.ArgumentParser:
     o.set_defaults(func=cmd_optimize)
 
     b = sub.add_parser("bench", help="benchmarks: throughput, backward/forward ratio, memory")
-    b.add_argument("what", choices=["mpm", "contact"])
+    b.add_argument("what", choices=["mpm", "contact", "coupling"])
     b.add_argument("--out", default="out/bench", help="folder for the CSV")
     b.add_argument("--quick", action="store_true", help="fewer substeps (a smoke run)")
-    b.add_argument("--repeat", type=positive_int, default=3, help="contact: repetitions; times are medians")
+    b.add_argument("--repeat", type=positive_int, default=3, help="contact, coupling: repetitions; times are medians")
     b.set_defaults(func=cmd_bench)
 
     rd = sub.add_parser("render", help="render a saved trajectory.npz to a GIF/MP4")

@@ -43,18 +43,45 @@ class RigidBoundaries:
         self.real = np.float64 if self.pos.dtype == ti.f64 else np.float32
 
     def set_states(self, pos: np.ndarray, rot: np.ndarray, vel: np.ndarray, omega: np.ndarray) -> None:
-        """Body states for substeps 0..K-1: pos (K, n, d), rot (K, n, d, d), vel (K, n, d), omega (K, n, 1|3)."""
-        K = len(pos)
-        for fld, values in ((self.pos, pos), (self.rot, rot), (self.vel, vel), (self.omega, omega)):
-            full = fld.to_numpy()
-            full[:K] = values
-            fld.from_numpy(full.astype(self.real))
-        self.impulse.fill(0)
-        self.angular_impulse.fill(0)
+        """Body states for substeps 0..K-1: pos (K, n, d), rot (K, n, d, d), vel (K, n, d), omega (K, n, 1|3);
+        clears those substeps' reactions. Only the K slots are written (the fields hold max_substeps)."""
+        arrays = [np.ascontiguousarray(a, dtype=self.real) for a in (pos, rot, vel, omega)]
+        self._write_states(*arrays, len(pos))
+
+    @ti.kernel
+    def _write_states(
+        self,
+        pos: ti.types.ndarray(),
+        rot: ti.types.ndarray(),
+        vel: ti.types.ndarray(),
+        omega: ti.types.ndarray(),
+        K: ti.i32,
+    ):
+        for s, b in ti.ndrange(K, self.n):
+            for i in ti.static(range(self.dim)):
+                self.pos[s, b][i] = pos[s, b, i]
+                self.vel[s, b][i] = vel[s, b, i]
+                self.impulse[s, b][i] = 0.0
+                for j in ti.static(range(self.dim)):
+                    self.rot[s, b][i, j] = rot[s, b, i, j]
+            for i in ti.static(range(self.wdim)):
+                self.omega[s, b][i] = omega[s, b, i]
+                self.angular_impulse[s, b][i] = 0.0
+
+    @ti.kernel
+    def _read_reactions(self, impulse: ti.types.ndarray(), angular: ti.types.ndarray(), K: ti.i32):
+        for s, b in ti.ndrange(K, self.n):
+            for i in ti.static(range(self.dim)):
+                impulse[s, b, i] = self.impulse[s, b][i]
+            for i in ti.static(range(self.wdim)):
+                angular[s, b, i] = self.angular_impulse[s, b][i]
 
     def reactions(self, K: int) -> tuple[np.ndarray, np.ndarray]:
         """Impulse (K, n, d) [N s] and angular impulse about the body origin (K, n, 1|3) of substeps 0..K-1."""
-        return self.impulse.to_numpy()[:K].astype(np.float64), self.angular_impulse.to_numpy()[:K].astype(np.float64)
+        impulse = np.zeros((K, self.n, self.dim), dtype=self.real)
+        angular = np.zeros((K, self.n, self.wdim), dtype=self.real)
+        self._read_reactions(impulse, angular, K)
+        return impulse.astype(np.float64), angular.astype(np.float64)
 
     def state_grads(self, K: int) -> dict[str, np.ndarray]:
         """dL/d(body states) of substeps 0..K-1 after a vjp."""

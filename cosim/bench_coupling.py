@@ -1,0 +1,141 @@
+"""`cosim bench coupling`: what the MPM-DART coupling costs, on pour_water and pull_door.
+
+Per scene, in one process (float64, as gradient runs are), after a warm-up that
+compiles every kernel:
+
+- forward: a coupled macro step's wall time, and the part of it spent in the MPM
+  engine's K substeps, in DART's step and in the coupler (boundary states per
+  substep, reaction averaging), timed around each call inside the same run, so
+  all see the same states: coupled / MPM and coupled / DART; the remainder is
+  the simulation's own checks (CFL, NaN, domain), which an MPM-only run pays too;
+- backward: the adjoint of the rollout (the tape's reverse replay, MPM vjp
+  with checkpoint recompute, DART vjp, boundary vjp) against its recorded
+  forward: backward / forward.
+
+Each measurement is the median of ``repeat`` runs.
+"""
+
+from __future__ import annotations
+
+import csv
+import time
+from pathlib import Path
+
+import numpy as np
+
+SCENES = ["pour_water", "pull_door"]
+COLUMNS = [
+    "scene",
+    "macro_steps",
+    "step_ms",
+    "mpm_ms",
+    "dart_ms",
+    "coupler_ms",
+    "coupled_vs_mpm",
+    "coupled_vs_dart",
+    "bwd_fwd",
+]
+
+
+class _Timer:
+    """Wraps a callable and adds up its wall time."""
+
+    def __init__(self, fn):
+        self.fn, self.seconds = fn, 0.0
+
+    def __call__(self, *args, **kwargs):
+        t = time.perf_counter()
+        try:
+            return self.fn(*args, **kwargs)
+        finally:
+            self.seconds += time.perf_counter() - t
+
+
+def _forward(scene, steps: int) -> dict:
+    import taichi as ti
+
+    from cosim.simulation import Simulation
+
+    sim = Simulation(scene, steps=steps + 2)
+    sim.step()
+    sim.step()  # warm-up: compiles
+    ti.sync()
+    mpm, dart = _Timer(sim.mpm.step), _Timer(sim.articulated.engine.step)
+    boundaries, finish = _Timer(sim.set_boundaries), _Timer(sim.coupler.finish_step)
+    sim.mpm.step, sim.articulated.engine.step = mpm, dart
+    sim.set_boundaries, sim.coupler.finish_step = boundaries, finish
+    t = time.perf_counter()
+    for _ in range(steps):
+        sim.step()
+    ti.sync()
+    total = time.perf_counter() - t
+    coupler = boundaries.seconds + finish.seconds - dart.seconds
+    return {"step": total / steps, "mpm": mpm.seconds / steps, "dart": dart.seconds / steps, "coupler": coupler / steps}
+
+
+def _backward(scene, steps: int) -> float:
+    """Backward / recorded forward time of a ``steps``-step rollout (after a compile run)."""
+    from cosim.adjoint.objective import Objective
+    from cosim.simulation import Simulation
+
+    obj = Objective(Simulation(scene, requires_grad=True, steps=steps))
+    params = obj.initial_params()
+    obj.evaluate(params, grad=True)  # compile
+    t = time.perf_counter()
+    final = obj.rollout(params, record=True)
+    forward = time.perf_counter() - t
+    _, dstate = obj.loss(final)
+    t = time.perf_counter()
+    obj.tape.backward(obj.sim.step_vjp, dstate)
+    return (time.perf_counter() - t) / forward
+
+
+def run_coupling_bench(out_dir: Path, quick: bool = False, repeat: int = 3) -> int:
+    from cosim.cli import scenes_dir
+    from cosim.run import hardware_line
+    from cosim.runtime import ensure_taichi
+    from cosim.scene import load_scene
+
+    ensure_taichi("cpu", "float64")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    steps, grad_steps = (5, 3) if quick else (40, 10)
+    rows = []
+    for name in SCENES:
+        scene = load_scene(scenes_dir() / f"{name}.yaml", {"precision": "float64"})
+        fwd = [_forward(scene, steps) for _ in range(repeat)]
+        med = {k: float(np.median([f[k] for f in fwd])) for k in ("step", "mpm", "dart", "coupler")}
+        bwd = float(np.median([_backward(scene, grad_steps) for _ in range(repeat)]))
+        rows.append(
+            {
+                "scene": name,
+                "macro_steps": steps,
+                "step_ms": 1e3 * med["step"],
+                "mpm_ms": 1e3 * med["mpm"],
+                "dart_ms": 1e3 * med["dart"],
+                "coupler_ms": 1e3 * med["coupler"],
+                "coupled_vs_mpm": med["step"] / med["mpm"],
+                "coupled_vs_dart": med["step"] / med["dart"],
+                "bwd_fwd": bwd,
+            }
+        )
+        print(f"  {name}: " + ", ".join(f"{k} {v:.4g}" for k, v in rows[-1].items() if k != "scene"), flush=True)
+    with open(out_dir / "coupling.csv", "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=COLUMNS)
+        writer.writeheader()
+        writer.writerows(rows)
+    lines = [
+        f"Coupling benchmark on {hardware_line()}; float64; medians of {repeat} runs; forward over {steps} "
+        f"macro steps, backward/forward over {grad_steps}",
+        "",
+        "| scene | coupled step ms | MPM ms | DART ms | coupler ms | coupled / MPM | coupled / DART | backward / forward |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['scene']} | {r['step_ms']:.2f} | {r['mpm_ms']:.2f} | {r['dart_ms']:.3f} | {r['coupler_ms']:.2f} | "
+            f"{r['coupled_vs_mpm']:.2f} | {r['coupled_vs_dart']:.0f} | {r['bwd_fwd']:.2f} |"
+        )
+    (out_dir / "coupling.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+    print(f"wrote {out_dir}/coupling.csv, coupling.md")
+    return 0
