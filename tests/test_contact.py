@@ -273,12 +273,13 @@ def test_particles_held_by_a_moved_glass_are_those_in_its_cup():
     shape = SimpleNamespace(type="glass", radius=0.05, height=0.1, thickness=0.01)
     R = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # body +y -> world -x
     motion = const_motion([0.2, 0.0, 0.0], R, [0.0, 0.0, 0.0], 0.0)
-    scene = RigidScene(["glass"], [shape], [None], [motion], None)
+    grid = primitive_sdf("glass", 3, 0.005, 0.02, radius=0.05, height=0.1, thickness=0.01)
+    scene = RigidScene(["glass"], [shape], [grid], [motion], None)
     pts = np.array(
         [
             [0.2, 0.0, 0.0],  # the cup's middle
             [0.16, 0.035, 0.0],  # in the cup near the wall and the rim
-            [0.2, 0.045, 0.0],  # in the side wall
+            [0.2, 0.045, 0.0],  # in the side wall (counted as inside the wall, not held)
             [0.245, 0.0, 0.0],  # in the bottom
             [0.14, 0.0, 0.0],  # beyond the rim
         ]
