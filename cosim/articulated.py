@@ -18,7 +18,15 @@ from pathlib import Path
 
 import numpy as np
 
-from cosim.couplers.sdf import SDFGrid, shape_sdf, shape_spec_sdf
+from cosim.couplers.sdf import (
+    SDFGrid,
+    function_sdf,
+    primitive_distance,
+    primitive_extent,
+    primitive_size,
+    shape_sdf,
+    shape_spec_sdf,
+)
 from cosim.engines.rigid_build import LinkSpec, ShapeSpec, SkeletonSpec
 from cosim.errors import SceneError
 
@@ -136,11 +144,43 @@ def _skeleton_spec(skel, dim: int, dx: float, source_dir: Path, key: str) -> tup
     return spec, grids
 
 
+def _rotvec_matrix(rotation) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    vec = np.zeros(3) if isinstance(rotation, (int, float)) else np.asarray(rotation, float)
+    return Rotation.from_rotvec(vec).as_matrix()
+
+
+def _base_transform(skel) -> np.ndarray | None:
+    if skel.position is None and not np.any(skel.rotation):
+        return None
+    T = np.eye(4)
+    T[:3, :3] = _rotvec_matrix(skel.rotation)
+    T[:3, 3] = skel.position or (0.0, 0.0, 0.0)
+    return T
+
+
+def placed_shape_sdf(placed, spacing: float, padding: float) -> SDFGrid:
+    """The link-frame SDF of one of our primitive shapes placed by ``position`` / ``rotation``."""
+    shape = placed.shape
+    if shape.type in ("mesh", "ring"):
+        raise SceneError(f"contact_shapes: a {shape.type} cannot be placed on a URDF link; use a primitive")
+    R, t = _rotvec_matrix(placed.rotation), np.asarray(placed.position, float)
+    size = primitive_size(shape)
+    ext = primitive_extent(shape.type, 3, **size)
+    corners = (np.array(list(np.ndindex(2, 2, 2))) * 2.0 - 1.0) * ext
+    world = corners @ R.T + t
+    return function_sdf(
+        lambda p: primitive_distance(shape.type, (p - t) @ R, **size), world.min(axis=0), world.max(axis=0), spacing, padding
+    )
+
+
 def _urdf_spec(skel, source_dir: Path) -> SkeletonSpec:
     return SkeletonSpec(
         name=skel.name,
         urdf=str((source_dir / skel.urdf).resolve()),
         fixed_base=skel.fixed_base,
+        base_transform=_base_transform(skel),
         package_dirs={k: str((source_dir / v).resolve()) for k, v in skel.package_dirs.items()},
         initial_positions=dict(skel.initial_positions),
         collide=skel.collide,
@@ -165,12 +205,15 @@ def build_articulated(scene, dx: float) -> Articulated:
     gravity = _lift(scene.gravity, dim)
     engine = RigidEngine(specs, scene.time.frame_dt, gravity=gravity, collision=spec.collision)
     coupled, names, grids = [], [], []
-    for skel in spec.skeletons:
+    for i, skel in enumerate(spec.skeletons):
+        _check_link_names(engine, skel, f"articulated.skeletons[{i}]")
         for i, full in enumerate(engine.body_names):
             sk, link = full.split("/", 1)
             if sk != skel.name or not _is_coupled(skel, link):
                 continue
             grid = link_grids.get(full)
+            if grid is None and link in skel.contact_shapes:  # URDF link with our contact shape
+                grid = placed_shape_sdf(skel.contact_shapes[link], 0.5 * dx, 3 * dx)
             if grid is None:  # URDF link: its collision shapes
                 geometry = engine.link_geometry(full)
                 if not geometry:
@@ -181,6 +224,15 @@ def build_articulated(scene, dx: float) -> Articulated:
             grids.append(grid)
     n_segments = math.ceil(scene.steps / spec.actions.hold)
     return Articulated(engine, coupled, names, grids, n_segments, spec.actions.hold)
+
+
+def _check_link_names(engine, skel, key: str) -> None:
+    """URDF links named in ``couple`` and ``contact_shapes`` exist (a typo would silently drop contact)."""
+    links = [full.split("/", 1)[1] for full in engine.body_names if full.split("/", 1)[0] == skel.name]
+    named = (list(skel.couple) if isinstance(skel.couple, list) else []) + list(skel.contact_shapes)
+    unknown = sorted(set(named) - set(links))
+    if unknown:
+        raise SceneError(f"{key}: no links named {unknown} in the URDF; its links: {links}")
 
 
 def _is_coupled(skel, link: str) -> bool:

@@ -37,6 +37,13 @@ def _urdf_problems(key: str, skel, scene: Scene) -> list[str]:
     path = (scene.source_dir / skel.urdf).resolve()
     if not path.is_file():
         problems.append(f"{key}.urdf: file not found: {path}")
+    if skel.position is not None and len(skel.position) != 3:
+        problems.append(f"{key}.position: must have 3 entries, got {len(skel.position)}")
+    problems += rotation_problems(f"{key}.rotation", skel.rotation, 3)
+    for link, placed in skel.contact_shapes.items():
+        problems += rigid_shape_problems(f"{key}.contact_shapes.{link}.shape", placed.shape, scene)
+        if placed.shape.type in ("mesh", "ring"):
+            problems.append(f"{key}.contact_shapes.{link}.shape.type: use a primitive (box, sphere, cylinder, capsule, glass)")
     for name, folder in skel.package_dirs.items():
         if not (scene.source_dir / folder).resolve().is_dir():
             problems.append(f"{key}.package_dirs.{name}: folder not found: {(scene.source_dir / folder).resolve()}")

@@ -252,6 +252,14 @@ class LinkSceneSpec(Strict):
     sdf_spacing: Positive | None = None  # [m] default dx / 2
 
 
+class PlacedShape(Strict):
+    """One of our rigid shapes placed in a link frame (e.g. a hollow bottle for a URDF's solid one)."""
+
+    shape: RigidShape
+    position: Vec = [0.0, 0.0, 0.0]  # [m] the shape's centre in the link frame
+    rotation: Vec = [0.0, 0.0, 0.0]  # rotation vector [rad] from the shape's frame to the link frame
+
+
 class SkeletonSceneSpec(Strict):
     """An articulated rigid body from ``links`` (primitives) or a ``urdf`` file (3D)."""
 
@@ -259,6 +267,9 @@ class SkeletonSceneSpec(Strict):
     links: list[LinkSceneSpec] = []
     urdf: str | None = None
     fixed_base: bool = True  # urdf: weld the root link to the world
+    position: Vec | None = None  # urdf: the root link's origin in the world [m]
+    rotation: float | Vec = 0.0  # urdf: the root's rotation (rotation vector [rad]; a z-up URDF in a y-up scene: [-1.5708, 0, 0])
+    contact_shapes: dict[str, "PlacedShape"] = {}  # urdf: link -> our shape as its MPM contact geometry
     package_dirs: dict[str, str] = {}  # urdf: package://name/ -> folder (relative to the scene)
     initial_positions: dict[str, float | Vec] = {}  # urdf: joint name -> position
     couple: Literal["all", "none"] | list[str] = "all"  # urdf: links the MPM sees

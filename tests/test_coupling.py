@@ -280,3 +280,48 @@ def test_material_starting_inside_a_rigid_link_is_refused():
     )
     with pytest.raises(SceneError, match="start more than dx/2 inside rigid body 'box/box'"):
         Simulation(scene)
+
+
+def urdf_scene(**skeleton):
+    base = {
+        "name": "panda",
+        "urdf": "scenes/assets/panda_like/panda_like.urdf",
+        "position": [-0.25, 0.0, 0.33],
+        "rotation": [-np.pi / 2, 0.0, 0.0],
+        "couple": ["bottle"],
+        "contact_shapes": {
+            "bottle": {
+                "shape": {"type": "glass", "radius": 0.035, "height": 0.2, "thickness": 0.006},
+                "rotation": [np.pi / 2, 0.0, 0.0],
+            }
+        },
+    }
+    return make_scene(
+        dim=3,
+        mpm={"grid": {"cells": 16}, "bodies": [elastic("b", [0.5, 0.5, 0.5], [0.1, 0.1, 0.1], [0, 0, 0])]},
+        articulated={"skeletons": [base | skeleton]},
+    )
+
+
+def test_a_urdf_arm_is_placed_in_the_y_up_world_with_a_hollow_bottle():
+    """The Panda-like URDF: the base transform turns its z-up onto the scene's y-up (joint 2 sits
+    0.333 m above the base), only the listed link is coupled, and the bottle's contact geometry
+    is the placed glass: hollow along the bottle link's +z, walls negative."""
+    from cosim.articulated import build_articulated
+
+    built = build_articulated(urdf_scene(), dx=1 / 96)
+    engine = built.engine
+    states = engine.body_states()
+    link2 = states["position"][engine.body_index("panda_link2")]
+    assert np.allclose(link2, [-0.25, 0.333, 0.33], atol=1e-9)
+    assert built.names == ["panda/bottle"]
+    grid = built.grids[0]
+    cavity, wall, above = np.array([[0.0, 0.0, 0.05]]), np.array([[0.032, 0.0, 0.0]]), np.array([[0.0, 0.0, 0.15]])
+    assert grid.sample(cavity)[0][0] > 0.02 and grid.sample(wall)[0][0] < 0 and grid.sample(above)[0][0] > 0
+
+
+def test_a_typo_in_a_urdf_link_name_is_an_error():
+    from cosim.articulated import build_articulated
+
+    with pytest.raises(SceneError, match=r"no links named \['botle'\]"):
+        build_articulated(urdf_scene(couple=["botle"]), dx=1 / 96)

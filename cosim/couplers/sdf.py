@@ -348,10 +348,10 @@ def shape_sdf(shape, dim: int, spacing: float, padding: float, source_dir: Path,
             raise SceneError(f"{key}.file: cannot read mesh {path}: {exc}") from None
         mesh.apply_scale(shape.scale)
         return mesh_sdf(mesh, spacing, padding, key=f"{key}.file ({path.name})")
-    return primitive_sdf(shape.type, dim, spacing, padding, **_primitive_size(shape))
+    return primitive_sdf(shape.type, dim, spacing, padding, **primitive_size(shape))
 
 
-def _primitive_size(shape) -> dict:
+def primitive_size(shape) -> dict:
     """The size keywords of ``primitive_distance`` from a scene ``RigidShape``."""
     if shape.type == "box":
         return {"half": 0.5 * np.asarray(shape.size, dtype=np.float64)}
@@ -365,7 +365,7 @@ def is_container(shape) -> bool:
 def in_cavity(shape, p: np.ndarray) -> np.ndarray:
     """Which body-frame points (n, d) are held by a container shape: inside a glass's cup
     (below the rim, above the bottom, within the inner wall) or a ring's inner disc."""
-    size = _primitive_size(shape)
+    size = primitive_size(shape)
     if shape.type == "ring":
         return np.linalg.norm(p, axis=-1) < size["radius"] - 0.5 * size["thickness"]
     if shape.type == "glass":

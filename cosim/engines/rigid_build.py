@@ -95,7 +95,8 @@ class SkeletonSpec:
       the commanded velocity exactly, so forces and wrenches on those dofs do not move them;
     - ``wrench`` (free root joint only): 6-D [torque; force] in world coordinates about the body origin;
     - ``twist`` (free root joint only): 6-D [angular; linear] world velocity of the body origin, kinematic.
-    URDF: ``fixed_base`` welds the root link to the world (else it floats), ``package_dirs`` resolves
+    URDF: ``fixed_base`` welds the root link to the world (else it floats), ``base_transform`` places the
+    root in the world (e.g. a z-up robot in a y-up scene), ``package_dirs`` resolves
     ``package://name/`` URIs, ``initial_positions`` maps joint names to positions. ``collide``: take part in
     DART rigid-rigid collision.
     """
@@ -104,6 +105,7 @@ class SkeletonSpec:
     links: list[LinkSpec] = field(default_factory=list)
     urdf: str | None = None
     fixed_base: bool = True
+    base_transform: np.ndarray | None = None  # 4x4 pose of a URDF's root link in the world (default identity)
     package_dirs: dict[str, str] = field(default_factory=dict)
     initial_positions: dict[str, float | list[float]] = field(default_factory=dict)
     collide: bool = True
@@ -399,6 +401,8 @@ def build_urdf_skeleton(spec: SkeletonSpec):
     if skel is None:
         raise InputError(f"DART could not parse URDF {path}; check it with check_urdf and the package_dirs")
     skel.setName(spec.name)
+    if spec.base_transform is not None:
+        skel.getRootJoint().setTransformFromParentBodyNode(_isometry(spec.base_transform))
     for joint in skel.getJoints():
         limits = np.concatenate([joint.getPositionLowerLimits(), joint.getPositionUpperLimits()])
         if np.isfinite(limits).any():
