@@ -142,3 +142,29 @@ def test_non_watertight_mesh_is_refused(tmp_path):
     open_box = trimesh.Trimesh(box.vertices, box.faces[:-2], process=False)
     with pytest.raises(SceneError, match="not watertight"):
         mesh_sdf(open_box, 0.02, 0.04, key="rigid.bodies[0].mesh", use_cache=False)
+
+
+def test_urdf_link_geometry_sdfs_match_their_closed_forms(tmp_path, monkeypatch):
+    """A URDF link's collision shapes in its body frame: a transformed mesh file (exact) and a
+    union of two primitives (the minimum of their closed forms), cylinders along DART's z."""
+    from cosim.couplers.sdf import shape_spec_sdf
+    from cosim.engines.rigid_build import ShapeSpec, make_transform
+
+    monkeypatch.setenv("COSIM_CACHE", str(tmp_path))
+    half = np.array([0.05, 0.03, 0.04])
+    path = tmp_path / "box.obj"
+    trimesh.creation.box(extents=2 * half).export(path)
+    T = make_transform((0.1, 0.0, 0.02), (0.0, 0.0, 90.0))  # turned about z, moved
+    grid = shape_spec_sdf([(ShapeSpec("mesh", mesh=str(path)), T)], 0.01, 0.03, key="link")
+    pts = grid.nodes().reshape(-1, 3)
+    local = (pts - T[:3, 3]) @ T[:3, :3]
+    assert np.abs(grid.values.ravel() - primitive_distance("box", local, half=half)).max() < 1e-9
+
+    cyl = ShapeSpec("cylinder", radius=0.03, height=0.2)  # along z
+    ball = ShapeSpec("sphere", radius=0.05, position=(0.0, 0.0, 0.12))
+    union = shape_spec_sdf([(cyl, cyl.transform()), (ball, ball.transform())], 0.01, 0.03, key="link")
+    pts = union.nodes().reshape(-1, 3)
+    q = np.stack([np.linalg.norm(pts[:, :2], axis=1) - 0.03, np.abs(pts[:, 2]) - 0.1], axis=1)
+    z_cylinder = np.linalg.norm(np.maximum(q, 0), axis=1) + np.minimum(q.max(axis=1), 0)
+    exact = np.minimum(z_cylinder, np.linalg.norm(pts - [0, 0, 0.12], axis=1) - 0.05)
+    assert np.abs(union.values.ravel() - exact).max() < 1e-12
