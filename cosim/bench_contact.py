@@ -15,9 +15,12 @@ and two wall thicknesses. Reported per run:
   particle that hits the wall is thrown back at about its impact speed, up to 3.7 m/s
   here, which liquid against a wall never does.
 - seconds: wall time of the simulation steps after the first (which compiles the
-  kernels), without the per-frame bookkeeping; the whole table is repeated
-  ``repeat`` times in one process and the median is reported, with the forecast /
-  grid time ratio taken within each repetition (same thickness) and its median.
+  kernels), without the per-frame bookkeeping. All models of one thickness are
+  built together and advanced in turn, 10 frames each, so that slow phases of
+  this shared machine (run-to-run swings of 2x were seen) fall on all of them
+  alike; the whole table is repeated ``repeat`` times in one process and the
+  median is reported, with the time / grid ratio taken within each repetition
+  and its median.
 """
 
 from __future__ import annotations
@@ -53,51 +56,79 @@ def rebound_count(
     return int(np.sum(separating > speed))
 
 
-def run_one(model: str, stiffness: float | None, thickness: float, steps: int, track_objective: bool = False) -> dict:
-    """One shaken-container run; counts at the last frame, rebound events, timed steps."""
-    from cosim.cli import scenes_dir
-    from cosim.scene import load_scene
-    from cosim.simulation import Simulation
+class ContainerRun:
+    """One shaken-container simulation that can be advanced in chunks (so that all models of a
+    table advance in turn and share the machine's state when timed)."""
 
-    contact = {"model": model} | ({"stiffness": stiffness} if stiffness else {})
-    scene = load_scene(scenes_dir() / "shake_container_2d.yaml", {"steps": steps, "contact": contact})
-    ring = scene.rigid.bodies[0]
-    ring.shape.thickness = thickness
-    sim = Simulation(scene)
-    hook = sim.mpm._hook
-    if track_objective:
-        hook.track_objective = True
-    inner = ring.shape.radius - 0.5 * thickness
-    wall_speed = max(float(np.linalg.norm(seg.velocity)) for seg in ring.motion.segments)
-    rebounds = 0
-    seconds = 0.0
-    for n in range(steps):
-        t0 = time.perf_counter()
-        sim.step()
-        if n > 0:  # the first step compiles the kernels; the bookkeeping below is not timed
-            seconds += time.perf_counter() - t0
-        t = sim.step_index * sim.frame_dt
-        center, _ = sim.rigid.poses(t)[0]
-        v_wall, _ = sim.rigid.motions[0].twist(t)
-        state = sim.mpm.state()
-        rebounds += rebound_count(
-            state["x"], state["v"], center, v_wall, inner, REBOUND_BAND * sim.dx, REBOUND_SPEED * wall_speed
-        )
-    x = sim.mpm.state()["x"]
-    penetrated, in_wall = penetration_counts(x, center, inner, thickness)
-    out = {
-        "model": model,
-        "k": f"{stiffness:g}" if stiffness else "",
-        "thickness": f"1/{round(1 / thickness)}",
-        "penetrated": penetrated,
-        "in_wall": in_wall,
-        "rebound": rebounds,
-        "seconds": seconds,
-        "_frame": (x.copy(), center.copy(), ring.shape.radius, thickness),
-    }
-    if getattr(hook, "objective_ratios", None):
-        out["objective_decrease"] = float(1 - np.mean(hook.objective_ratios))
-    return out
+    def __init__(self, model: str, stiffness: float | None, thickness: float, steps: int, track: bool = False):
+        from cosim.cli import scenes_dir
+        from cosim.scene import load_scene
+        from cosim.simulation import Simulation
+
+        contact = {"model": model} | ({"stiffness": stiffness} if stiffness else {})
+        scene = load_scene(scenes_dir() / "shake_container_2d.yaml", {"steps": steps, "contact": contact})
+        self.ring = scene.rigid.bodies[0]
+        self.ring.shape.thickness = thickness
+        self.sim = Simulation(scene)
+        self.hook = self.sim.mpm._hook  # grid or forecast model (the particle model's is a particle hook)
+        if track:
+            self.hook.track_objective = True
+        self.model, self.stiffness, self.thickness, self.steps = model, stiffness, thickness, steps
+        self.inner = self.ring.shape.radius - 0.5 * thickness
+        self.wall_speed = max(float(np.linalg.norm(seg.velocity)) for seg in self.ring.motion.segments)
+        self.rebounds, self.seconds, self.done = 0, 0.0, 0
+
+    def advance(self, frames: int) -> None:
+        """Up to ``frames`` more frames; the first frame (kernel compilation) and the per-frame
+        bookkeeping are not timed."""
+        sim = self.sim
+        for _ in range(min(frames, self.steps - self.done)):
+            t0 = time.perf_counter()
+            sim.step()
+            if self.done > 0:
+                self.seconds += time.perf_counter() - t0
+            self.done += 1
+            t = sim.step_index * sim.frame_dt
+            center, _ = sim.rigid.poses(t)[0]
+            v_wall, _ = sim.rigid.motions[0].twist(t)
+            state = sim.mpm.state()
+            self.rebounds += rebound_count(
+                state["x"],
+                state["v"],
+                center,
+                v_wall,
+                self.inner,
+                REBOUND_BAND * sim.dx,
+                REBOUND_SPEED * self.wall_speed,
+            )
+
+    def result(self) -> dict:
+        sim = self.sim
+        center, _ = sim.rigid.poses(sim.step_index * sim.frame_dt)[0]
+        x = sim.mpm.state()["x"]
+        penetrated, in_wall = penetration_counts(x, center, self.inner, self.thickness)
+        out = {
+            "model": self.model,
+            "k": f"{self.stiffness:g}" if self.stiffness else "",
+            "thickness": f"1/{round(1 / self.thickness)}",
+            "penetrated": penetrated,
+            "in_wall": in_wall,
+            "rebound": self.rebounds,
+            "seconds": self.seconds,
+            "_frame": (x.copy(), center.copy(), self.ring.shape.radius, self.thickness),
+        }
+        if getattr(self.hook, "objective_ratios", None):
+            out["objective_decrease"] = float(1 - np.mean(self.hook.objective_ratios))
+        return out
+
+
+def run_table(thickness: float, steps: int, chunk: int = 10) -> list[dict]:
+    """Every model at one wall thickness, advanced in turn ``chunk`` frames at a time."""
+    runs = [ContainerRun(model, k, thickness, steps) for model, k in RUNS]
+    for _ in range(0, steps, chunk):
+        for run in runs:
+            run.advance(chunk)
+    return [run.result() for run in runs]
 
 
 def _median_rows(repeats: list[list[dict]]) -> list[dict]:
@@ -134,9 +165,9 @@ def run_contact_bench(out_dir: Path, quick: bool = False, repeat: int = 3) -> in
     for rep in range(repeat):
         rows = []
         for thickness in THICKNESSES:
-            for model, k in RUNS:
-                row = run_one(model, k, thickness, steps)
+            for row in run_table(thickness, steps):
                 rows.append(row)
+                model = row["model"]
                 print(
                     f"  [{rep + 1}/{repeat}] {model:9s} k={row['k']:5s} wall {row['thickness']}: penetrated "
                     f"{row['penetrated']:5d}, in wall {row['in_wall']:4d}, rebound {row['rebound']:4d}, "
@@ -146,7 +177,9 @@ def run_contact_bench(out_dir: Path, quick: bool = False, repeat: int = 3) -> in
         repeats.append(rows)
     rows = _median_rows(repeats)
     # the forecast objective's decrease, in a separate short run: tracking it syncs every substep
-    tracked = run_one("forecast", None, THICKNESSES[0], min(steps, 200), track_objective=True)
+    tracked_run = ContainerRun("forecast", None, THICKNESSES[0], min(steps, 200), track=True)
+    tracked_run.advance(tracked_run.steps)
+    tracked = tracked_run.result()
     columns = ["model", "k", "thickness", "penetrated", "rebound", "seconds", "in_wall", "time_vs_grid"]
     with open(out_dir / "contact.csv", "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=columns, extrasaction="ignore")

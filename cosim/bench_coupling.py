@@ -51,43 +51,61 @@ class _Timer:
             self.seconds += time.perf_counter() - t
 
 
-def _forward(scene, steps: int) -> dict:
+def _forward(scene, steps: int, repeat: int) -> list[dict]:
+    """Per repetition: per-step times of the coupled step and its parts, one simulation reset each time."""
     import taichi as ti
 
     from cosim.simulation import Simulation
 
-    sim = Simulation(scene, steps=steps + 2)
+    sim = Simulation(scene)
+    mpm0, rigid0 = sim.mpm.state(), sim.articulated.engine.state()
     sim.step()
     sim.step()  # warm-up: compiles
     ti.sync()
-    mpm, dart = _Timer(sim.mpm.step), _Timer(sim.articulated.engine.step)
-    boundaries, finish = _Timer(sim.set_boundaries), _Timer(sim.coupler.finish_step)
-    sim.mpm.step, sim.articulated.engine.step = mpm, dart
-    sim.set_boundaries, sim.coupler.finish_step = boundaries, finish
+    out = []
+    for _ in range(repeat):
+        sim.mpm.set_state(mpm0)
+        sim.articulated.engine.set_state(rigid0)
+        sim.step_index = 0
+        out.append(_timed_steps(sim, steps))
+    return out
+
+
+def _timed_steps(sim, steps: int) -> dict:
+    import taichi as ti
+
+    originals = sim.mpm.step, sim.articulated.engine.step, sim.set_boundaries, sim.coupler.finish_step
+    mpm, dart, boundaries, finish = (_Timer(f) for f in originals)
+    sim.mpm.step, sim.articulated.engine.step, sim.set_boundaries, sim.coupler.finish_step = mpm, dart, boundaries, finish
     t = time.perf_counter()
     for _ in range(steps):
         sim.step()
     ti.sync()
     total = time.perf_counter() - t
+    sim.mpm.step, sim.articulated.engine.step, sim.set_boundaries, sim.coupler.finish_step = originals
     coupler = boundaries.seconds + finish.seconds - dart.seconds
     return {"step": total / steps, "mpm": mpm.seconds / steps, "dart": dart.seconds / steps, "coupler": coupler / steps}
 
 
-def _backward(scene, steps: int) -> float:
-    """Backward / recorded forward time of a ``steps``-step rollout (after a compile run)."""
+def _backward(scene, steps: int, repeat: int) -> float:
+    """Median backward / recorded forward time of a ``steps``-step rollout. One objective serves
+    every repetition: a new one would recompile the 3D adjoint kernels (minutes each)."""
     from cosim.adjoint.objective import Objective
     from cosim.simulation import Simulation
 
     obj = Objective(Simulation(scene, requires_grad=True, steps=steps))
     params = obj.initial_params()
     obj.evaluate(params, grad=True)  # compile
-    t = time.perf_counter()
-    final = obj.rollout(params, record=True)
-    forward = time.perf_counter() - t
-    _, dstate = obj.loss(final)
-    t = time.perf_counter()
-    obj.tape.backward(obj.sim.step_vjp, dstate)
-    return (time.perf_counter() - t) / forward
+    ratios = []
+    for _ in range(repeat):
+        t = time.perf_counter()
+        final = obj.rollout(params, record=True)
+        forward = time.perf_counter() - t
+        _, dstate = obj.loss(final)
+        t = time.perf_counter()
+        obj.tape.backward(obj.sim.step_vjp, dstate)
+        ratios.append((time.perf_counter() - t) / forward)
+    return float(np.median(ratios))
 
 
 def run_coupling_bench(out_dir: Path, quick: bool = False, repeat: int = 3) -> int:
@@ -102,9 +120,9 @@ def run_coupling_bench(out_dir: Path, quick: bool = False, repeat: int = 3) -> i
     rows = []
     for name in SCENES:
         scene = load_scene(scenes_dir() / f"{name}.yaml", {"precision": "float64"})
-        fwd = [_forward(scene, steps) for _ in range(repeat)]
+        fwd = _forward(scene, steps, repeat)
         med = {k: float(np.median([f[k] for f in fwd])) for k in ("step", "mpm", "dart", "coupler")}
-        bwd = float(np.median([_backward(scene, grad_steps) for _ in range(repeat)]))
+        bwd = _backward(scene, grad_steps, repeat)
         rows.append(
             {
                 "scene": name,
