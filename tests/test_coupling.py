@@ -49,10 +49,12 @@ def free_box(name, position, size, density, **joint):
 
 @pytest.mark.parametrize("model", MODELS)
 def test_momentum_is_exchanged_with_a_free_box(model):
-    """Gravity off: an elastic block thrown at a free box; box + particles keep their linear
+    """Gravity off: an elastic ball thrown at a free box; box + particles keep their linear
     momentum within 1% through the collision, and the box takes a real share of it."""
+    ball = elastic("ball", [0.3, 0.5], None, [2.0, 0.0])
+    ball["shape"] = {"type": "sphere", "center": [0.3, 0.5], "radius": 0.08}
     scene = coupled_scene(
-                [elastic("ball", [0.3, 0.5], [0.14, 0.14], [2.0, 0.0])],
+        [ball],
         [free_box("box", [0.55, 0.5], [0.15, 0.15], 400.0)],
         model,
     )
@@ -206,7 +208,7 @@ def gradient_scene(model, loss):
     box = free_box("box", [0.615, 0.52], [0.15, 0.15], 100.0, qd0=[-1.0, 0.0, 0.0])
     box["controls"] = {"box": "torque"}
     return coupled_scene(
-                [elastic("ball", [0.45, 0.5], [0.14, 0.14], [0.5, 0.1], E=2e3)],
+        [elastic("ball", [0.45, 0.5], [0.14, 0.14], [0.5, 0.1], E=2e3)],
         [box],
         model,
         cells=32,
