@@ -175,13 +175,33 @@ def placed_shape_sdf(placed, spacing: float, padding: float) -> SDFGrid:
     )
 
 
-def _urdf_spec(skel, source_dir: Path) -> SkeletonSpec:
+PYBULLET_DATA = "pybullet_data:"  # prefix of paths inside the optional pybullet wheel's data folder
+
+
+def resolve_asset(text: str, source_dir: Path, key: str) -> Path:
+    """A scene path: relative to the scene, or ``pybullet_data:sub/path`` inside the data folder of
+    the optional ``pybullet`` wheel (``pip install -e ".[panda]"``: the real Franka Panda meshes)."""
+    if not text.startswith(PYBULLET_DATA):
+        return (source_dir / text).resolve()
+    try:
+        import pybullet_data
+    except ImportError:
+        raise SceneError(
+            f"{key}: '{text}' needs the optional pybullet wheel: pip install -e \".[panda]\" "
+            "(or use our scenes/assets/panda_like arm, which needs nothing)"
+        ) from None
+    return Path(pybullet_data.getDataPath()) / text[len(PYBULLET_DATA) :]
+
+
+def _urdf_spec(skel, source_dir: Path, key: str) -> SkeletonSpec:
     return SkeletonSpec(
         name=skel.name,
-        urdf=str((source_dir / skel.urdf).resolve()),
+        urdf=str(resolve_asset(skel.urdf, source_dir, f"{key}.urdf")),
         fixed_base=skel.fixed_base,
         base_transform=_base_transform(skel),
-        package_dirs={k: str((source_dir / v).resolve()) for k, v in skel.package_dirs.items()},
+        package_dirs={
+            k: str(resolve_asset(v, source_dir, f"{key}.package_dirs.{k}")) for k, v in skel.package_dirs.items()
+        },
         initial_positions=dict(skel.initial_positions),
         collide=skel.collide,
         controls=dict(skel.controls),
@@ -197,7 +217,7 @@ def build_articulated(scene, dx: float) -> Articulated:
     specs, link_grids = [], {}
     for i, skel in enumerate(spec.skeletons):
         if skel.urdf is not None:
-            specs.append(_urdf_spec(skel, scene.source_dir))
+            specs.append(_urdf_spec(skel, scene.source_dir, f"articulated.skeletons[{i}]"))
             continue
         s, grids = _skeleton_spec(skel, dim, dx, scene.source_dir, f"articulated.skeletons[{i}]")
         specs.append(s)

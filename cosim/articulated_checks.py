@@ -34,9 +34,19 @@ def _urdf_problems(key: str, skel, scene: Scene) -> list[str]:
     problems = []
     if scene.dim != 3:
         problems.append(f"{key}.urdf: URDF skeletons are 3D; in 2D build the skeleton from links")
-    path = (scene.source_dir / skel.urdf).resolve()
-    if not path.is_file():
-        problems.append(f"{key}.urdf: file not found: {path}")
+    from cosim.articulated import resolve_asset
+    from cosim.errors import SceneError
+
+    try:
+        path = resolve_asset(skel.urdf, scene.source_dir, f"{key}.urdf")
+        if not path.is_file():
+            problems.append(f"{key}.urdf: file not found: {path}")
+        for name, folder in skel.package_dirs.items():
+            found = resolve_asset(folder, scene.source_dir, f"{key}.package_dirs.{name}")
+            if not found.is_dir():
+                problems.append(f"{key}.package_dirs.{name}: folder not found: {found}")
+    except SceneError as exc:
+        problems.append(str(exc))
     if skel.position is not None and len(skel.position) != 3:
         problems.append(f"{key}.position: must have 3 entries, got {len(skel.position)}")
     problems += rotation_problems(f"{key}.rotation", skel.rotation, 3)
@@ -44,9 +54,6 @@ def _urdf_problems(key: str, skel, scene: Scene) -> list[str]:
         problems += rigid_shape_problems(f"{key}.contact_shapes.{link}.shape", placed.shape, scene)
         if placed.shape.type in ("mesh", "ring"):
             problems.append(f"{key}.contact_shapes.{link}.shape.type: use a primitive (box, sphere, cylinder, capsule, glass)")
-    for name, folder in skel.package_dirs.items():
-        if not (scene.source_dir / folder).resolve().is_dir():
-            problems.append(f"{key}.package_dirs.{name}: folder not found: {(scene.source_dir / folder).resolve()}")
     return problems
 
 

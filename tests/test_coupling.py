@@ -3,7 +3,7 @@ and adjoint gradients across the coupling against central differences (float64).
 
 import numpy as np
 import pytest
-from conftest import make_scene
+from conftest import ROOT, make_scene
 
 from cosim.adjoint.gradcheck import check_gradients
 from cosim.adjoint.objective import Objective
@@ -327,3 +327,30 @@ def test_a_typo_in_a_urdf_link_name_is_an_error():
 
     with pytest.raises(SceneError, match=r"no links named \['botle'\]"):
         build_articulated(urdf_scene(couple=["botle"]), dx=1 / 96)
+
+
+def test_the_real_panda_scene_names_its_optional_extra_when_missing(monkeypatch):
+    """Without the pybullet wheel, pour_franka_meshes stops at validation with the install line."""
+    import sys
+
+    from cosim.scene import load_scene
+
+    monkeypatch.setitem(sys.modules, "pybullet_data", None)  # import fails as if not installed
+    with pytest.raises(SceneError, match=r'pip install -e "\.\[panda\]"'):
+        load_scene(ROOT / "scenes/pour_franka_meshes.yaml")
+
+
+def test_the_real_panda_carries_the_bottle_where_our_arm_does():
+    """Where the pybullet wheel is installed: the real Panda at our arm's joint angles puts its
+    hand, hence the bottle placed on it, where our Panda-like URDF puts its bottle (1 mm)."""
+    pytest.importorskip("pybullet_data")
+    from cosim.articulated import build_articulated
+    from cosim.scene import load_scene
+
+    real = build_articulated(load_scene(ROOT / "scenes/pour_franka_meshes.yaml"), dx=1 / 96)
+    ours = build_articulated(load_scene(ROOT / "scenes/pour_franka.yaml"), dx=1 / 96)
+    hand = real.engine.body_states()
+    bottle = ours.engine.body_states()
+    i, j = real.engine.body_index("panda_hand"), ours.engine.body_index("bottle")
+    offset = hand["rotation"][i] @ np.array([0.0, 0.0, 0.1034])  # the bottle's centre on the real hand
+    assert np.allclose(hand["position"][i] + offset, bottle["position"][j], atol=1e-3)
