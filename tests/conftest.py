@@ -57,3 +57,17 @@ def run_cli(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
     return subprocess.run(
         [sys.executable, "-m", "cosim.cli", *args], capture_output=True, text=True, cwd=cwd or ROOT, timeout=900
     )
+
+
+def shipped_scenes() -> list:
+    """Every scene under scenes/, as pytest params; those that need the optional pybullet wheel
+    (paths "pybullet_data:...") are skipped where it is not installed."""
+    import importlib.util
+
+    have_pybullet = importlib.util.find_spec("pybullet_data") is not None
+    params = []
+    for path in sorted(SCENES.glob("*.yaml")):
+        needs = "pybullet_data:" in path.read_text()
+        skip = [pytest.mark.skip(reason='needs the optional pybullet wheel: pip install -e ".[panda]"')]
+        params.append(pytest.param(path, id=path.stem, marks=skip if needs and not have_pybullet else []))
+    return params

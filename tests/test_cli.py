@@ -9,10 +9,10 @@ import sys
 import numpy as np
 import pytest
 import yaml
-from conftest import ROOT, SCENES, run_cli, scene_dict
+from conftest import ROOT, run_cli, scene_dict, shipped_scenes
 
 
-@pytest.mark.parametrize("path", sorted(SCENES.glob("*.yaml")), ids=lambda p: p.stem)
+@pytest.mark.parametrize("path", shipped_scenes())
 def test_every_shipped_scene_runs_and_writes_its_outputs(path, tmp_path):
     res = run_cli("run", str(path), "--steps", "4", "--out", str(tmp_path), "--quiet")
     assert res.returncode == 0, res.stderr

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import yaml
-from conftest import ROOT, SCENES, make_scene, run_cli, scene_dict
+from conftest import ROOT, make_scene, run_cli, scene_dict, shipped_scenes
 
 from cosim.errors import SceneError
 from cosim.scene import load_scene, parse_scene
@@ -25,7 +25,7 @@ def with_body(**body_changes):
     return data
 
 
-@pytest.mark.parametrize("path", sorted(SCENES.glob("*.yaml")), ids=lambda p: p.stem)
+@pytest.mark.parametrize("path", shipped_scenes())
 def test_shipped_scenes_are_valid(path):
     scene = load_scene(path)
     assert scene.dim in (2, 3)
