@@ -21,6 +21,7 @@ import numpy as np
 from cosim.couplers.sdf import (
     SDFGrid,
     function_sdf,
+    placed_box_bounds,
     primitive_distance,
     primitive_extent,
     primitive_size,
@@ -73,8 +74,7 @@ def _euler_deg(rotation, dim: int) -> tuple[float, float, float]:
         return (0.0, 0.0, math.degrees(float(rotation)))
     from scipy.spatial.transform import Rotation
 
-    vec = np.zeros(3) if isinstance(rotation, (int, float)) else np.asarray(rotation, float)
-    return tuple(Rotation.from_rotvec(vec).as_euler("xyz", degrees=True))
+    return tuple(Rotation.from_matrix(_rotvec_matrix(rotation)).as_euler("xyz", degrees=True))
 
 
 def _lift(v, dim: int, fill: float = 0.0):
@@ -145,10 +145,10 @@ def _skeleton_spec(skel, dim: int, dx: float, source_dir: Path, key: str) -> tup
 
 
 def _rotvec_matrix(rotation) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
+    """A 3D scene rotation (rotation vector [rad]) as a matrix, as for kinematic bodies."""
+    from cosim.simulation import rotation_matrix
 
-    vec = np.zeros(3) if isinstance(rotation, (int, float)) else np.asarray(rotation, float)
-    return Rotation.from_rotvec(vec).as_matrix()
+    return rotation_matrix(rotation, 3)
 
 
 def _base_transform(skel) -> np.ndarray | None:
@@ -167,12 +167,8 @@ def placed_shape_sdf(placed, spacing: float, padding: float) -> SDFGrid:
         raise SceneError(f"contact_shapes: a {shape.type} cannot be placed on a URDF link; use a primitive")
     R, t = _rotvec_matrix(placed.rotation), np.asarray(placed.position, float)
     size = primitive_size(shape)
-    ext = primitive_extent(shape.type, 3, **size)
-    corners = (np.array(list(np.ndindex(2, 2, 2))) * 2.0 - 1.0) * ext
-    world = corners @ R.T + t
-    return function_sdf(
-        lambda p: primitive_distance(shape.type, (p - t) @ R, **size), world.min(axis=0), world.max(axis=0), spacing, padding
-    )
+    lo, hi = placed_box_bounds(primitive_extent(shape.type, 3, **size), R, t)
+    return function_sdf(lambda p: primitive_distance(shape.type, (p - t) @ R, **size), lo, hi, spacing, padding)
 
 
 PYBULLET_DATA = "pybullet_data:"  # prefix of paths inside the optional pybullet wheel's data folder

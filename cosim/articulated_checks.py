@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from cosim.errors import SceneError
 from cosim.scene import Scene
 from cosim.scene_checks import rigid_shape_problems, rotation_problems
 
@@ -34,8 +35,7 @@ def _urdf_problems(key: str, skel, scene: Scene) -> list[str]:
     problems = []
     if scene.dim != 3:
         problems.append(f"{key}.urdf: URDF skeletons are 3D; in 2D build the skeleton from links")
-    from cosim.articulated import resolve_asset
-    from cosim.errors import SceneError
+    from cosim.articulated import resolve_asset  # imports the SDF code (Taichi): only for URDF scenes
 
     try:
         path = resolve_asset(skel.urdf, scene.source_dir, f"{key}.urdf")

@@ -205,7 +205,7 @@ class Simulation:
     def _build_rigid(self) -> None:
         """Rigid bodies as SDF boundaries under the scene's contact model: the kinematic ones
         (``rigid:``) first, then the coupled links of DART skeletons (``articulated:``)."""
-        from cosim.couplers.contact import ForecastContact, GridContact, ParticlePenalty, RigidBoundaries
+        from cosim.couplers.contact import RigidBoundaries
         from cosim.couplers.sdf import shape_sdf
 
         scene = self.scene
@@ -228,15 +228,8 @@ class Simulation:
             grids += articulated.grids
         slots = max(scene.time.max_substeps, self.grad_substeps)
         boundaries = RigidBoundaries(grids, scene.dim, slots, requires_grad=self.requires_grad) if grids else None
-        contact = scene.contact
-        if boundaries is None:
-            pass
-        elif contact.model == "grid":
-            GridContact(self.mpm, boundaries, contact.friction, contact.band)
-        elif contact.model == "forecast":
-            ForecastContact(self.mpm, boundaries, contact.friction, contact.alpha, contact.threshold, contact.smoothing)
-        else:
-            ParticlePenalty(self.mpm, boundaries, contact.stiffness, contact.friction)
+        if boundaries is not None:  # with nothing the MPM sees, no contact hook
+            self._attach_contact(boundaries)
         coupler = None
         if articulated is not None:
             from cosim.articulated import action_sequence
@@ -262,6 +255,18 @@ class Simulation:
                     f"{count} particles start more than dx/2 inside rigid body '{body}'; move the body or the "
                     "material so that they do not overlap at t = 0"
                 )
+
+    def _attach_contact(self, boundaries) -> None:
+        """The scene's contact model between the MPM and ``boundaries``."""
+        from cosim.couplers.contact import ForecastContact, GridContact, ParticlePenalty
+
+        c = self.scene.contact
+        if c.model == "grid":
+            GridContact(self.mpm, boundaries, c.friction, c.band)
+        elif c.model == "forecast":
+            ForecastContact(self.mpm, boundaries, c.friction, c.alpha, c.threshold, c.smoothing)
+        else:
+            ParticlePenalty(self.mpm, boundaries, c.stiffness, c.friction)
 
     def set_boundaries(self, t0: float, dt: float, K: int, bodies=None) -> None:
         """Per-substep states of every rigid boundary for the step starting at t0: kinematic bodies
@@ -307,7 +312,11 @@ class Simulation:
         if self.articulated is None:
             return None
         seq = self.rigid_actions if actions is None else actions
-        return seq[min(n // self.articulated.hold, len(seq) - 1)]
+        return seq[self.action_segment(n, len(seq))]
+
+    def action_segment(self, n: int, segments: int) -> int:
+        """Which of ``segments`` held actions macro step n uses (the last one after the sequence)."""
+        return min(n // self.articulated.hold, segments - 1)
 
     # ------------------------------------------------------------ time stepping
     def _auto_substeps(self, speed: float) -> int:

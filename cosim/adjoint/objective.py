@@ -105,5 +105,5 @@ class Objective:
         if "action" in params:
             grads["action"] = np.zeros_like(params["action"])
             for n, ga in enumerate(g.action):
-                grads["action"][min(n // self.sim.articulated.hold, len(params["action"]) - 1)] += ga
+                grads["action"][self.sim.action_segment(n, len(params["action"]))] += ga
         return value, grads

@@ -41,6 +41,7 @@ class RigidBoundaries:
         self.impulse = ti.Vector.field(dim, float, shape=shape, needs_grad=grad)
         self.angular_impulse = ti.Vector.field(self.wdim, float, shape=shape, needs_grad=grad)
         self.real = np.float64 if self.pos.dtype == ti.f64 else np.float32
+        self._seed = None  # reaction adjoints for the next vjp (seed_reaction_grads)
 
     def set_states(self, pos: np.ndarray, rot: np.ndarray, vel: np.ndarray, omega: np.ndarray) -> None:
         """Body states for substeps 0..K-1: pos (K, n, d), rot (K, n, d, d), vel (K, n, d), omega (K, n, 1|3);
@@ -96,7 +97,7 @@ class RigidBoundaries:
         for fld in (self.pos, self.rot, self.vel, self.omega, self.impulse, self.angular_impulse):
             if fld.grad is not None:
                 fld.grad.fill(0)
-        seed, self._seed = getattr(self, "_seed", None), None
+        seed, self._seed = self._seed, None
         if seed is not None:
             for fld, values in zip((self.impulse, self.angular_impulse), seed):
                 full = np.zeros(fld.shape + (values.shape[-1],), dtype=self.real)

@@ -31,7 +31,6 @@ from dataclasses import dataclass
 import numpy as np
 
 
-
 def _hat(phi: np.ndarray) -> np.ndarray:
     """[phi]x for a batch of vectors (..., 3) -> (..., 3, 3)."""
     z = np.zeros(phi.shape[:-1])
@@ -81,9 +80,14 @@ class BodyStates:
 def substep_states(b: BodyStates, dt: float, K: int) -> BodyStates:
     """Per-substep states (K, m, ...): each body moves with its twist, p_k = p + k dt v, R_k = exp(k dt w) R."""
     k = (np.arange(K) * dt)[:, None, None]
-    pos = b.pos[None] + k * b.v[None]
+    pos = substep_origins(b, dt, K)
     R = _exp(k * b.w[None]) @ b.R[None]
     return BodyStates(pos, R, np.broadcast_to(b.v, pos.shape).copy(), np.broadcast_to(b.w, pos.shape).copy())
+
+
+def substep_origins(b: BodyStates, dt: float, K: int) -> np.ndarray:
+    """The body origins p + k dt v of substeps k = 0..K-1, (K, m, 3)."""
+    return b.pos[None] + (np.arange(K) * dt)[:, None, None] * b.v[None]
 
 
 def substep_states_vjp(g: BodyStates, b: BodyStates, dt: float) -> BodyStates:
@@ -191,7 +195,7 @@ class MPMRigidCoupler:
             return CoupledRecord(self.rigid.step(action, None), bodies, zero, zero, dt, K)
         impulse, angular = self.boundaries.reactions(K)
         J, L = lift_reactions(impulse[:, self.slots], angular[:, self.slots], self.dim)
-        pos_k = substep_states(bodies, dt, K).pos
+        pos_k = substep_origins(bodies, dt, K)
         wrenches = np.zeros((len(self.rigid.body_names), 6))
         wrenches[self.coupled] = average_wrench(J, L, pos_k, bodies.pos, K * dt)
         record = self.rigid.step(action, wrenches)

@@ -203,14 +203,20 @@ def shape_spec_sdf(geometry: list, spacing: float, padding: float, key: str) -> 
         mesh.apply_transform(np.diag([*np.broadcast_to(np.asarray(spec.scale, float), 3), 1.0]))
         mesh.apply_transform(T)
         return mesh_sdf(mesh, spacing, padding, key=f"{key} ({Path(spec.mesh).name})")
-    corners = np.array(list(np.ndindex(2, 2, 2))) * 2.0 - 1.0
-    points = [T[:3, :3] @ (corners * _spec_half_extent(g)).T + T[:3, 3:4] for g, T in geometry]
-    points = np.concatenate(points, axis=1).T
+    bounds = [placed_box_bounds(_spec_half_extent(g), T[:3, :3], T[:3, 3]) for g, T in geometry]
 
     def union(p: np.ndarray) -> np.ndarray:
         return np.min([_spec_distance(g, (p - T[:3, 3]) @ T[:3, :3]) for g, T in geometry], axis=0)
 
-    return function_sdf(union, points.min(axis=0), points.max(axis=0), spacing, padding)
+    lo, hi = np.min([b[0] for b in bounds], axis=0), np.max([b[1] for b in bounds], axis=0)
+    return function_sdf(union, lo, hi, spacing, padding)
+
+
+def placed_box_bounds(half: np.ndarray, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Axis-aligned bounds (lo, hi) of a box of half extents ``half`` rotated by R and moved by t."""
+    corners = (np.array(list(np.ndindex(2, 2, 2))) * 2.0 - 1.0) * half
+    placed = corners @ R.T + t
+    return placed.min(axis=0), placed.max(axis=0)
 
 
 # ---------------------------------------------------------------- meshes
