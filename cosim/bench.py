@@ -56,34 +56,33 @@ def measure(dim: int, cells: int, side: int, precision: str, substeps: int, macr
 
     fwd = MPMEngine(MPMConfig(dim, (cells,) * dim, dx, gravity), [body])
     t = time.perf_counter()
-    fwd.step(dt, 1)
+    fwd.advance(dt, 1)
     fwd.state()
     compile_s = time.perf_counter() - t
     t = time.perf_counter()
     for _ in range(macro_steps):
-        fwd.step(dt, substeps)
+        fwd.advance(dt, substeps)
     fwd.state()  # synchronise
     fwd_s = time.perf_counter() - t
 
     grad = MPMEngine(MPMConfig(dim, (cells,) * dim, dx, gravity, requires_grad=True, grad_substeps=substeps), [body])
     zero = {k: np.zeros_like(v) for k, v in grad.state().items()}
+    seed = {"state": dict(zero, x=np.ones_like(zero["x"]))}
+    inputs = {"dt": dt, "substeps": substeps}
     t = time.perf_counter()
-    rec0 = {"state": grad.state(), "dt": dt, "substeps": substeps, "impulse": None}
-    grad.step(dt, substeps)
-    grad.vjp(dict(rec0, token=-1), dict(zero, x=np.ones_like(zero["x"])))
+    _, rec0 = grad.step(inputs)
+    rec0.token = -1  # force the recompute path too
+    grad.vjp(rec0, seed)
     compile_s += time.perf_counter() - t
     records = []
     t = time.perf_counter()
     for _ in range(macro_steps):
-        rec = {"state": grad.state(), "dt": dt, "substeps": substeps, "impulse": None}
-        rec["token"] = grad.step(dt, substeps).token
-        records.append(rec)
-    grad.state()
+        records.append(grad.step(inputs)[1])
     tape_fwd_s = time.perf_counter() - t
     t = time.perf_counter()
-    g = dict(zero, x=np.ones_like(zero["x"]))
+    g = seed
     for rec in reversed(records):
-        g = grad.vjp(rec, g)["state"]
+        g = {"state": grad.vjp(rec, g)["state"]}
     bwd_s = time.perf_counter() - t
     n = len(pts)
     work = n * substeps * macro_steps

@@ -63,14 +63,14 @@ class ContainerRun:
     def __init__(self, model: str, stiffness: float | None, thickness: float, steps: int, track: bool = False):
         from cosim.cli import scenes_dir
         from cosim.scene import load_scene
-        from cosim.simulation import Simulation
+        from cosim.simulation import build_system
 
         contact = {"model": model} | ({"stiffness": stiffness} if stiffness else {})
         scene = load_scene(scenes_dir() / "shake_container_2d.yaml", {"steps": steps, "contact": contact})
         self.ring = scene.rigid.bodies[0]
         self.ring.shape.thickness = thickness
-        self.sim = Simulation(scene)
-        self.hook = self.sim.mpm._hook  # grid or forecast model (the particle model's is a particle hook)
+        self.sim = build_system(scene)
+        self.hook = (self.sim.mpm.grid_hooks or [None])[0]  # grid or forecast model (particle: a particle hook)
         if track:
             self.hook.track_objective = True
         self.model, self.stiffness, self.thickness, self.steps = model, stiffness, thickness, steps
@@ -88,9 +88,8 @@ class ContainerRun:
             if self.done > 0:
                 self.seconds += time.perf_counter() - t0
             self.done += 1
-            t = sim.step_index * sim.frame_dt
-            center, _ = sim.rigid.poses(t)[0]
-            v_wall, _ = sim.rigid.motions[0].twist(t)
+            center, _ = sim.rigid.poses()[0]
+            v_wall, _ = sim.rigid.kinematic.motions[0].twist(sim.rigid.kinematic.time)
             state = sim.mpm.state()
             self.rebounds += rebound_count(
                 state["x"],
@@ -104,7 +103,7 @@ class ContainerRun:
 
     def result(self) -> dict:
         sim = self.sim
-        center, _ = sim.rigid.poses(sim.step_index * sim.frame_dt)[0]
+        center, _ = sim.rigid.poses()[0]
         x = sim.mpm.state()["x"]
         penetrated, in_wall = penetration_counts(x, center, self.inner, self.thickness)
         out = {

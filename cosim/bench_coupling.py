@@ -4,10 +4,11 @@ Per scene, in one process (float64, as gradient runs are), after a warm-up that
 compiles every kernel:
 
 - forward: a coupled macro step's wall time, and the part of it spent in the MPM
-  engine's K substeps, in DART's step and in the coupler (boundary states per
-  substep, reaction averaging), timed around each call inside the same run, so
-  all see the same states: coupled / MPM and coupled / DART; the remainder is
-  the simulation's own checks (CFL, NaN, domain), which an MPM-only run pays too;
+  engine's step (K substeps, boundary writes, reaction reads), in DART's step and in
+  the coupler (boundary states per substep, reaction averaging), from the coupled
+  system's timing hooks inside the same run, so all see the same states: coupled /
+  MPM and coupled / DART; the remainder is the system's own checks (CFL, NaN,
+  domain), which an MPM-only run pays too;
 - backward: the adjoint of the rollout (the tape's reverse replay, MPM vjp
   with checkpoint recompute, DART vjp, boundary vjp) against its recorded
   forward: backward / forward.
@@ -37,63 +38,49 @@ COLUMNS = [
 ]
 
 
-class _Timer:
-    """Wraps a callable and adds up its wall time."""
-
-    def __init__(self, fn):
-        self.fn, self.seconds = fn, 0.0
-
-    def __call__(self, *args, **kwargs):
-        t = time.perf_counter()
-        try:
-            return self.fn(*args, **kwargs)
-        finally:
-            self.seconds += time.perf_counter() - t
-
-
 def _forward(scene, steps: int, repeat: int) -> list[dict]:
-    """Per repetition: per-step times of the coupled step and its parts, one simulation reset each time."""
+    """Per repetition: per-step times of the coupled step and its parts, one system reset each time."""
     import taichi as ti
 
-    from cosim.simulation import Simulation
+    from cosim.simulation import build_system
 
-    sim = Simulation(scene)
-    mpm0, rigid0 = sim.mpm.state(), sim.articulated.engine.state()
+    sim = build_system(scene)
     sim.step()
     sim.step()  # warm-up: compiles
     ti.sync()
     out = []
     for _ in range(repeat):
-        sim.mpm.set_state(mpm0)
-        sim.articulated.engine.set_state(rigid0)
-        sim.step_index = 0
+        sim.reset()
         out.append(_timed_steps(sim, steps))
     return out
 
 
 def _timed_steps(sim, steps: int) -> dict:
+    """The system's own timing hooks split each step into MPM, DART and coupler time."""
     import taichi as ti
 
-    originals = sim.mpm.step, sim.articulated.engine.step, sim.set_boundaries, sim.coupler.finish_step
-    mpm, dart, boundaries, finish = (_Timer(f) for f in originals)
-    sim.mpm.step, sim.articulated.engine.step, sim.set_boundaries, sim.coupler.finish_step = mpm, dart, boundaries, finish
+    sim.timings = {}
     t = time.perf_counter()
     for _ in range(steps):
         sim.step()
     ti.sync()
     total = time.perf_counter() - t
-    sim.mpm.step, sim.articulated.engine.step, sim.set_boundaries, sim.coupler.finish_step = originals
-    coupler = boundaries.seconds + finish.seconds - dart.seconds
-    return {"step": total / steps, "mpm": mpm.seconds / steps, "dart": dart.seconds / steps, "coupler": coupler / steps}
+    parts, sim.timings = sim.timings, None
+    return {
+        "step": total / steps,
+        "mpm": parts["mpm"] / steps,
+        "dart": parts["dart"] / steps,
+        "coupler": parts["couplers"] / steps,
+    }
 
 
 def _backward(scene, steps: int, repeat: int) -> float:
     """Median backward / recorded forward time of a ``steps``-step rollout. One objective serves
     every repetition: a new one would recompile the 3D adjoint kernels (minutes each)."""
     from cosim.adjoint.objective import Objective
-    from cosim.simulation import Simulation
+    from cosim.simulation import build_system
 
-    obj = Objective(Simulation(scene, requires_grad=True, steps=steps))
+    obj = Objective(build_system(scene, requires_grad=True, steps=steps))
     params = obj.initial_params()
     obj.evaluate(params, grad=True)  # compile
     ratios = []
@@ -103,7 +90,7 @@ def _backward(scene, steps: int, repeat: int) -> float:
         forward = time.perf_counter() - t
         _, dstate = obj.loss(final)
         t = time.perf_counter()
-        obj.tape.backward(obj.sim.step_vjp, dstate)
+        obj.tape.backward(obj.system.vjp, dstate)
         ratios.append((time.perf_counter() - t) / forward)
     return float(np.median(ratios))
 

@@ -90,11 +90,11 @@ def cmd_gradcheck(args) -> int:
     from cosim.adjoint.gradcheck import check_gradients
     from cosim.adjoint.objective import Objective
     from cosim.errors import GradientCheckError
-    from cosim.simulation import Simulation
+    from cosim.simulation import build_system
 
     scene = _load(args, precision="float64")
     steps = args.steps or min(scene.steps, 5)
-    sim = Simulation(scene, requires_grad=True, steps=steps)
+    sim = build_system(scene, requires_grad=True, steps=steps)
     obj = Objective(sim)
     params = obj.initial_params()
     names = [p for p in scene.gradient.params if p in params]
@@ -127,11 +127,11 @@ def cmd_optimize(args) -> int:
     from cosim.adjoint.optimize import PARAM_BOUNDS, adam
     from cosim.errors import SceneError
     from cosim.run import Recorder
-    from cosim.simulation import Simulation
+    from cosim.simulation import build_system
 
     scene = _load(args, precision="float64")
     spec = scene.optimize
-    sim = Simulation(scene, requires_grad=True, steps=args.steps)
+    sim = build_system(scene, requires_grad=True, steps=args.steps)
     obj = Objective(sim)
     params = obj.initial_params()
     names = [p for p in spec.params if p in params]

@@ -52,7 +52,7 @@ class Recorder:
         self.times.append(step_index * self.sim.frame_dt)
         self.energy.append(energies(self.sim.mpm, state, self.sim.scene.gravity))
         if self.sim.rigid is not None:
-            self.rigid_poses.append(self.sim.rigid.poses(self.times[-1]))
+            self.rigid_poses.append(self.sim.rigid.poses())
 
     def wants(self, step_index: int) -> bool:
         """Save after macro step ``step_index`` (1-based)? Every output.every, and the last."""
@@ -112,24 +112,28 @@ def run_scene(
     """
     from tqdm import tqdm
 
-    from cosim.simulation import Simulation
+    from cosim.simulation import build_system
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     t_build = time.perf_counter()
-    sim = Simulation(scene, requires_grad=False, steps=steps)
+    sim = build_system(scene, requires_grad=False, steps=steps)
     build_s = time.perf_counter() - t_build
-    actions = sim.default_actions()
     recorder = Recorder(sim)
-    recorder(0)
     substeps = []
+    bar = tqdm(total=sim.steps, desc=scene.name, unit="step", disable=not progress, leave=False)
+
+    def on_step(n: int) -> None:
+        if n:
+            substeps.append(sim.last.substeps)
+            bar.update()
+        if n == 0 or recorder.wants(n):
+            recorder(n)
+
     t0 = time.perf_counter()
-    for n in tqdm(range(sim.steps), desc=scene.name, unit="step", disable=not progress, leave=False):
-        info = sim.step(sim.impulse_field(actions, n))
-        substeps.append(info.substeps)
-        if recorder.wants(n + 1):
-            recorder(n + 1)
+    sim.rollout(on_step=on_step)
     wall = time.perf_counter() - t0
+    bar.close()
 
     metrics = {
         "scene": scene.name,
@@ -152,16 +156,16 @@ def run_scene(
     }
     if sim.rigid is not None:
         metrics["contact_model"] = scene.contact.model
-        x, t = sim.mpm.state()["x"], sim.step_index * sim.frame_dt
-        metrics["particles_inside_rigid"] = sim.rigid.particles_inside(x, t)
-        held = sim.rigid.particles_held(x, t)
+        x = sim.mpm.state()["x"]
+        metrics["particles_inside_rigid"] = sim.rigid.particles_inside(x)
+        held = sim.rigid.particles_held(x)
         if held:
             metrics["particles_held"] = held
             metrics["particles_elsewhere"] = (
                 len(x) - sum(held.values()) - sum(metrics["particles_inside_rigid"].values())
             )
-    if sim.articulated is not None:
-        engine = sim.articulated.engine
+    if "dart" in sim.engines:
+        engine = sim.engines["dart"]
         metrics["joint_positions"] = {
             spec.name: skel.getPositions().tolist() for spec, skel in zip(engine.specs, engine.skeletons)
         }

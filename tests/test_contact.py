@@ -6,11 +6,13 @@ import numpy as np
 import pytest
 from conftest import make_scene
 
-from cosim.adjoint.tape import StepRecord
-from cosim.couplers.contact import ForecastContact, GridContact, ParticlePenalty, RigidBoundaries, kinematic_states
+from cosim.couplers.boundary import RigidBoundaries
+from cosim.couplers.contact import ForecastContact, GridContact, ParticlePenalty
+from cosim.couplers.mpm_kinematic import MPMKinematicCoupler
 from cosim.couplers.sdf import primitive_distance, primitive_sdf
-from cosim.engines.kinematic import constant
-from cosim.simulation import Simulation
+from cosim.engines.kinematic import KinematicEngine, constant
+from cosim.simulation import build_system
+from cosim.system import CoupledSystem
 
 DX = 1 / 32
 
@@ -46,20 +48,26 @@ def build(
         time={"frame_dt": 4e-3, "substeps": substeps},
         mpm={"grid": {"cells": 32}, "boundary": {"type": walls}, "gravity": list(gravity), "bodies": bodies},
     )
-    sim = Simulation(scene, requires_grad=grad)
+    mpm_only = build_system(scene, requires_grad=grad)
+    mpm = mpm_only.mpm
     rb = RigidBoundaries(
         [primitive_sdf("box", 2, DX / 2, 3 * DX, half=h) for h in boxes],
         2,
-        max(scene.time.max_substeps, sim.grad_substeps),
+        max(scene.time.max_substeps, mpm_only.grad_substeps),
         requires_grad=grad,
     )
+    kinematic = KinematicEngine(motions, [f"box{i}" for i in range(len(boxes))], scene.time.frame_dt)
+    coupler = MPMKinematicCoupler(kinematic)
+    mpm.attach_boundary(coupler.source, rb)
     if model == "grid":
-        GridContact(sim.mpm, rb, friction)
+        GridContact(mpm, [rb], friction)
     elif model == "forecast":
-        ForecastContact(sim.mpm, rb, friction)
+        ForecastContact(mpm, [rb], friction)
     else:
-        ParticlePenalty(sim.mpm, rb, 100.0, friction)
-    sim.before_step = lambda t0, dt, K: rb.set_states(*kinematic_states(motions, t0, dt, K))
+        ParticlePenalty(mpm, [rb], 100.0, friction)
+    sim = CoupledSystem(
+        mpm, [kinematic], [coupler], mpm_only.stepping, scene.gravity, mpm_only.domain, mpm_only.steps
+    )
     return sim, rb
 
 
@@ -77,10 +85,9 @@ def test_newtons_third_law_holds_to_round_off(model):
     p0 = (m * sim.mpm.state()["v"]).sum(axis=0)
     body_impulse, angular = np.zeros(2), 0.0
     for _ in range(40):
-        info = sim.step()
-        imp, ang = rb.reactions(info.substeps)
-        body_impulse += imp.sum(axis=(0, 1))
-        angular += ang.sum()
+        reactions = sim.step().outputs["reactions"]["kinematic"]
+        body_impulse += reactions["impulse"].sum(axis=(0, 1))
+        angular += reactions["angular_impulse"].sum()
     p1 = (m * sim.mpm.state()["v"]).sum(axis=0)
     assert np.linalg.norm(body_impulse) > 0.3 * np.linalg.norm(p0)  # a real collision
     assert np.abs((p1 - p0) + body_impulse).max() < 1e-12 * np.abs(p0).max()
@@ -139,26 +146,18 @@ def rollout(sim, rb, v_body, v0, grad):
     w = np.random.default_rng(0).standard_normal(x0.shape) / len(x0)
     n = len(x0)
     state0 = {"x": x0, "v": v0, "C": np.zeros((n, 2, 2)), "F": np.broadcast_to(np.eye(2), (n, 2, 2)).copy()}
-    motion = constant([0.36, 0.5], np.eye(2), v_body, 0.0)
-    states = lambda t0, dt, K: kinematic_states([motion], t0, dt, K)  # noqa: E731
-    sim.before_step = lambda t0, dt, K: rb.set_states(*states(t0, dt, K))
-    sim.mpm.set_state(state0)
-    sim.step_index = 0
-    records = []
-    for k in range(sim.steps):
-        before = sim.mpm.state()
-        info = sim.step()
-        records.append((StepRecord(before, info.dt, info.substeps, None, info.token), k * sim.frame_dt))
+    sim.engines["kinematic"].motions = [constant([0.36, 0.5], np.eye(2), v_body, 0.0)]
+    sim.set_state({"mpm": state0, "kinematic": {"steps": np.zeros(1)}})
+    records = [sim.step() for _ in range(sim.steps)]
     loss = float((w * sim.mpm.state()["x"]).sum())
     if not grad:
         return loss, None, None
     g = {key: np.zeros_like(val) for key, val in state0.items()} | {"x": w}
     d_vbody = np.zeros(2)
-    for rec, t0 in reversed(records):
-        rb.set_states(*states(t0, rec.dt, rec.substeps))  # this step's boundary, for its recompute
-        g = sim.mpm.vjp(rec.as_dict(), g)["state"]
-        gs = rb.state_grads(rec.substeps)
-        times = t0 + rec.dt * np.arange(rec.substeps)
+    for rec in reversed(records):  # the MPM's own vjp: boundary adjoints are one of its results
+        out = sim.mpm.vjp(rec.mpm, {"state": g})
+        g, gs = out["state"], out["boundaries"]["kinematic"]
+        times = rec.time + rec.dt * np.arange(rec.substeps)
         d_vbody += (times[:, None] * gs["pos"][:, 0]).sum(axis=0) + gs["vel"][:, 0].sum(axis=0)
     return loss, d_vbody, g["v"]
 
@@ -170,7 +169,7 @@ def test_adjoint_through_grid_contact_matches_finite_differences(pushed):
     v_body = np.array([1.5, 0.2])
     v0 = np.tile([-0.5, 0.1], (sim.mpm.n_particles, 1))
     rollout(sim, rb, v_body, v0, grad=False)
-    assert np.abs(rb.reactions(4)[0]).max() > 1e-4  # the last step is in contact
+    assert np.abs(rb.reactions(4)["impulse"]).max() > 1e-4  # the last step is in contact
     loss, g_body, g_v0 = rollout(sim, rb, v_body, v0, grad=True)
     eps = 1e-6
     for d in (np.array([1.0, 0.0]), np.array([0.3, -1.0])):
@@ -194,14 +193,14 @@ def test_scene_with_a_shaken_container_drives_the_liquid(tmp_path):
     from cosim.scene import load_scene
 
     scene = load_scene(SCENES / "shake_container_2d.yaml", {"precision": "float64", "steps": 60})
-    sim = Simulation(scene)
+    sim = build_system(scene)
     rec = Recorder(sim)
     rec(0)
     for n in range(60):  # 0.12 s of moving left at 0.3 m/s
         sim.step()
         if n + 1 in (30, 60):
             rec(n + 1)
-    p, _ = sim.rigid.poses(0.12)[0]
+    p, _ = sim.rigid.poses()[0]
     assert np.allclose(p, [0.5 - 0.3 * 0.12, 0.5])
     v = sim.mpm.state()["v"]
     assert v[:, 0].mean() < -0.05  # pushed along by the wall
@@ -234,9 +233,9 @@ def test_objective_gradients_through_a_moving_container_scene(model):
         },
         contact={"model": model, "friction": 0.2, "stiffness": 100.0},
     )
-    obj = Objective(Simulation(data, requires_grad=True))
+    obj = Objective(build_system(data, requires_grad=True))
     results = check_gradients(obj.evaluate, obj.initial_params(), ["v0", "E"], obj.natural_scales(), directions=1)
-    impulse, _ = obj.sim.rigid.boundaries.reactions(3)
+    impulse = obj.system.last.outputs["reactions"]["kinematic"]["impulse"]
     assert np.abs(impulse).max() > 0  # the last step touched the wall
     for r in results:
         assert r.relative_error < 1e-5, r
@@ -246,35 +245,38 @@ def test_particles_inside_counts_against_the_moved_and_rotated_body():
     """The run's penetration report: points inside a rotated, moved box per its analytic SDF."""
     import math
 
+    from cosim.couplers.rigid_view import RigidBodies
     from cosim.engines.kinematic import constant as const_motion
-    from cosim.simulation import RigidScene
 
     half = np.array([0.1, 0.05])
     grid = primitive_sdf("box", 2, DX / 4, 2 * DX, half=half)
     motion = const_motion([0.5, 0.5], np.eye(2), [0.1, 0.0], math.pi / 2)
-    scene = RigidScene(["lid"], [SimpleNamespace(type="box", size=2 * half)], [grid], [motion], None)
+    kinematic = KinematicEngine([motion], ["lid"], frame_dt=0.25)
+    scene = RigidBodies(["lid"], [SimpleNamespace(type="box", size=2 * half)], [grid], kinematic, dim=2)
+    kinematic.step({})
+    kinematic.step({})
     t = 0.5  # rotated by 45 degrees, moved 5 cm right
     p, R = motion.pose(t)
     pts = np.random.default_rng(3).uniform(0.3, 0.7, size=(4000, 2))
     exact = primitive_distance("box", (pts - p) @ R, half=half) < -0.5 * DX  # clearly inside
     outside = primitive_distance("box", (pts - p) @ R, half=half) > 0.5 * DX
-    count = scene.particles_inside(pts, t)["lid"]
+    count = scene.particles_inside(pts)["lid"]
     assert exact.sum() > 200
     assert exact.sum() <= count <= len(pts) - outside.sum()
-    assert scene.particles_held(pts, t) == {}  # a box holds nothing
+    assert scene.particles_held(pts) == {}  # a box holds nothing
 
 
 def test_particles_held_by_a_moved_glass_are_those_in_its_cup():
     """A glass lying on its side (axis along world -x) 0.2 m right of the origin: points in the
     cup, in the wall and beyond the rim."""
+    from cosim.couplers.rigid_view import RigidBodies
     from cosim.engines.kinematic import constant as const_motion
-    from cosim.simulation import RigidScene
 
     shape = SimpleNamespace(type="glass", radius=0.05, height=0.1, thickness=0.01)
     R = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # body +y -> world -x
     motion = const_motion([0.2, 0.0, 0.0], R, [0.0, 0.0, 0.0], 0.0)
     grid = primitive_sdf("glass", 3, 0.005, 0.02, radius=0.05, height=0.1, thickness=0.01)
-    scene = RigidScene(["glass"], [shape], [grid], [motion], None)
+    scene = RigidBodies(["glass"], [shape], [grid], KinematicEngine([motion], ["glass"], frame_dt=0.1), dim=3)
     pts = np.array(
         [
             [0.2, 0.0, 0.0],  # the cup's middle
@@ -284,7 +286,7 @@ def test_particles_held_by_a_moved_glass_are_those_in_its_cup():
             [0.14, 0.0, 0.0],  # beyond the rim
         ]
     )
-    assert scene.particles_held(pts, 0.0) == {"glass": 2}
+    assert scene.particles_held(pts) == {"glass": 2}
 
 
 def test_bench_metrics_count_penetration_and_fast_separation_only():

@@ -8,7 +8,7 @@ from conftest import ROOT, make_scene
 from cosim.adjoint.gradcheck import check_gradients
 from cosim.adjoint.objective import Objective
 from cosim.errors import SceneError
-from cosim.simulation import Simulation
+from cosim.simulation import build_system
 
 MODELS = ["grid", "particle", "forecast"]
 
@@ -58,8 +58,8 @@ def test_momentum_is_exchanged_with_a_free_box(model):
         [free_box("box", [0.55, 0.5], [0.15, 0.15], 400.0)],
         model,
     )
-    sim = Simulation(scene)
-    box = sim.articulated.engine.skeletons[0]
+    sim = build_system(scene)
+    box = sim.engines["dart"].skeletons[0]
 
     def momenta():
         v = sim.mpm.state()["v"]
@@ -109,12 +109,12 @@ def test_liquid_at_rest_in_a_welded_cup_weighs_on_it(model):
         },
         contact={"model": model},
     )
-    sim = Simulation(scene)
+    sim = build_system(scene)
     weight = sim.mpm.mass.sum() * 9.81
     forces = []
     for n in range(sim.steps):
         sim.step()
-        forces.append(sim.last_coupled.rigid.wrenches[0, 3:5])
+        forces.append(sim.last.engines["dart"].wrenches[0, 3:5])
     mean = np.mean(forces[sim.steps // 2 :], axis=0)
     assert abs(-mean[1] - weight) <= 0.05 * weight, (mean, weight)
     assert abs(mean[0]) <= 0.02 * weight  # no net sideways push
@@ -144,8 +144,8 @@ def test_a_light_box_floats_with_the_submerged_fraction_of_its_density_ratio():
         articulated={"skeletons": [free_box("box", [0.5, floor + 0.28], [0.24, 0.12], 500.0)]},
         contact={"model": "forecast"},
     )
-    sim = Simulation(scene)
-    engine = sim.articulated.engine
+    sim = build_system(scene)
+    engine = sim.engines["dart"]
     heights, surfaces = [], []
     for n in range(steps):
         sim.step()
@@ -181,8 +181,8 @@ def test_a_hinged_door_turns_by_the_angular_impulse_it_receives(model):
     scene = coupled_scene(
         [elastic("block", [0.45, 0.52], [0.12, 0.12], [2.0, 0.0], E=5e4)], [door], model, steps=80
     )
-    sim = Simulation(scene)
-    engine = sim.articulated.engine
+    sim = build_system(scene)
+    engine = sim.engines["dart"]
     inertia = engine.skeletons[0].getMassMatrix()[0, 0]
 
     def block_spin():
@@ -194,9 +194,9 @@ def test_a_hinged_door_turns_by_the_angular_impulse_it_receives(model):
     omega = angle = 0.0
     for _ in range(sim.steps):
         sim.step()
-        omega += sim.last_coupled.rigid.wrenches[0, 2] * sim.frame_dt / inertia
+        omega += sim.last.engines["dart"].wrenches[0, 2] * sim.frame_dt / inertia
         angle += sim.frame_dt * omega  # semi-implicit Euler, as DART
-    q, qd = engine.state()
+    q, qd = engine.state()["q"][0], engine.state()["qd"][0]
     assert q > 0.2  # turned, the right way
     assert q == pytest.approx(angle, rel=1e-9) and qd == pytest.approx(omega, rel=1e-9)
     assert inertia * qd == pytest.approx(spin0 - block_spin(), rel=0.02)
@@ -226,9 +226,9 @@ def test_gradients_from_rigid_actions_to_particles(model):
     """rigid -> MPM: a loss on the block's particle positions w.r.t. the box's force/torque
     actions (and the particles' initial velocities), adjoint vs central differences, 1e-5."""
     scene = gradient_scene(model, {"type": "weighted_positions", "body": "ball"})
-    obj = Objective(Simulation(scene, requires_grad=True))
+    obj = Objective(build_system(scene, requires_grad=True))
     results = check_gradients(obj.evaluate, obj.initial_params(), ["action", "v0"], obj.natural_scales(), 2)
-    impulse, _ = obj.sim.rigid.boundaries.reactions(4)
+    impulse = obj.system.last.outputs["reactions"]["dart"]["impulse"]
     assert np.abs(impulse).max() > 0  # in contact at the last step
     for r in results:
         assert abs(r.adjoint) > 0 and r.relative_error < 1e-5, r
@@ -239,7 +239,7 @@ def test_gradients_from_particle_impulses_to_a_joint(model):
     """MPM -> rigid: a loss on the box's joint coordinates w.r.t. the control impulses on the
     soft block (the soft-gripper case) and the box's actions, adjoint vs central differences."""
     loss = {"type": "joint_target", "skeleton": "box", "joint": "box", "target": [0.1, 0.0, 0.0]}
-    obj = Objective(Simulation(gradient_scene(model, loss), requires_grad=True))
+    obj = Objective(build_system(gradient_scene(model, loss), requires_grad=True))
     results = check_gradients(obj.evaluate, obj.initial_params(), ["impulse", "action"], obj.natural_scales(), 2)
     for r in results:
         assert abs(r.adjoint) > 0 and r.relative_error < 1e-5, r
@@ -251,8 +251,8 @@ def test_an_uncoupled_link_costs_nothing_in_the_mpm():
     skel = free_box("box", [0.55, 0.5], [0.15, 0.15], 400.0)
     skel["links"][0]["couple"] = False
     scene = coupled_scene([elastic("ball", [0.3, 0.5], [0.1, 0.1], [2.0, 0.0])], [skel], "grid")
-    sim = Simulation(scene)
-    assert sim.rigid.boundaries is None and sim.mpm._hook is None and sim.coupler.coupled == []
+    sim = build_system(scene)
+    assert sim.mpm.boundaries == {} and sim.mpm.grid_hooks == [] and sim.couplers == []
     for _ in range(sim.steps):
         sim.step()
     assert sim.mpm.state()["x"][:, 0].mean() > 0.5  # went through
@@ -281,7 +281,7 @@ def test_material_starting_inside_a_rigid_link_is_refused():
         [elastic("ball", [0.5, 0.5], [0.1, 0.1], [0.0, 0.0])], [free_box("box", [0.5, 0.5], [0.15, 0.15], 400.0)], "grid"
     )
     with pytest.raises(SceneError, match="start more than dx/2 inside rigid body 'box/box'"):
-        Simulation(scene)
+        build_system(scene)
 
 
 def urdf_scene(**skeleton):

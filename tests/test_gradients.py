@@ -14,7 +14,7 @@ from conftest import make_scene
 
 from cosim.adjoint.gradcheck import check_gradients
 from cosim.adjoint.objective import Objective
-from cosim.simulation import Simulation
+from cosim.simulation import build_system
 
 TOL = 1e-5
 
@@ -55,7 +55,7 @@ def three_material_scene(steps=3, substeps=4, frame_dt=4e-3, loss=None):
 
 @pytest.fixture(scope="module")
 def objective():
-    return Objective(Simulation(three_material_scene(), requires_grad=True))
+    return Objective(build_system(three_material_scene(), requires_grad=True))
 
 
 @pytest.mark.parametrize("param", ["v0", "impulse", "E", "x0", "nu"])
@@ -93,13 +93,17 @@ def test_com_loss_gradient(objective):
 
     scene = three_material_scene(loss={"type": "com_target", "body": "dough", "target": [0.5, 0.5]})
     sim = objective.sim
-    loss = Loss(scene, sim.slices, sim.mpm.mass)
+    loss = Loss(scene.loss, scene.dim, scene.seed, sim.slices, sim.mpm.mass)
     state = sim.mpm.state()
-    value, grad = loss(state)
+    value, grad = loss({"mpm": state})
     d = np.random.default_rng(0).standard_normal(state["x"].shape)
     eps = 1e-6
-    fd = (loss(dict(state, x=state["x"] + eps * d))[0] - loss(dict(state, x=state["x"] - eps * d))[0]) / (2 * eps)
-    assert abs(fd - np.sum(grad["x"] * d)) < 1e-8 * max(abs(fd), 1e-12)
+
+    def shifted(step):
+        return loss({"mpm": dict(state, x=state["x"] + step * d)})[0]
+
+    fd = (shifted(eps) - shifted(-eps)) / (2 * eps)
+    assert abs(fd - np.sum(grad["mpm"]["x"] * d)) < 1e-8 * max(abs(fd), 1e-12)
 
 
 def test_checkpointed_gradients_equal_full_storage():
@@ -109,8 +113,8 @@ def test_checkpointed_gradients_equal_full_storage():
     12 substeps (all states resident, no recompute), same dt: equal to round-off.
     """
     dt = 1e-3
-    checkpointed = Objective(Simulation(three_material_scene(steps=4, substeps=3, frame_dt=3 * dt), requires_grad=True))
-    full = Objective(Simulation(three_material_scene(steps=1, substeps=12, frame_dt=12 * dt), requires_grad=True))
+    checkpointed = Objective(build_system(three_material_scene(steps=4, substeps=3, frame_dt=3 * dt), requires_grad=True))
+    full = Objective(build_system(three_material_scene(steps=1, substeps=12, frame_dt=12 * dt), requires_grad=True))
     assert checkpointed.sim.mpm.n_slots == 4 and full.sim.mpm.n_slots == 13
     pc, pf = checkpointed.initial_params(), full.initial_params()
     pc["impulse"] = np.zeros_like(pc["impulse"])  # impulses are per macro step: switch them off
@@ -149,7 +153,7 @@ def test_adjoint_matches_finite_differences_3d():
         },
         controls=[{"body": "cube", "impulse": [0.0, 1e-4, 0.0]}],
     )
-    obj = Objective(Simulation(scene, requires_grad=True))
+    obj = Objective(build_system(scene, requires_grad=True))
     params = obj.initial_params()
     scales = {"v0": 1.0, "impulse": 1e-4, "E": 2e3}
     results = check_gradients(obj.evaluate, params, ["v0", "impulse", "E"], scales, directions=1, seed=2)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from conftest import make_scene
 
-from cosim.simulation import Simulation
+from cosim.simulation import build_system
 
 G = 9.81
 
@@ -22,7 +22,7 @@ def sim_of(bodies, grid=32, boundary="slip", gravity=None, **top):
     mpm = {"grid": {"cells": grid}, "boundary": {"type": boundary}, "bodies": bodies}
     if gravity is not None:
         mpm["gravity"] = gravity
-    return Simulation(make_scene(mpm=mpm, **top))
+    return build_system(make_scene(mpm=mpm, **top))
 
 
 def test_free_fall_matches_closed_form():
@@ -108,7 +108,7 @@ def squash_and_release(material):
         },
         controls=[{"body": "block", "region": {"min": [0.0, 0.28], "max": [1.0, 1.0]}}],
     )
-    sim = Simulation(scene)
+    sim = build_system(scene)
     ctrl = sim.controls[0]
     n_top = len(ctrl.indices)
     y = sim.mpm.state()["x"][:, 1]

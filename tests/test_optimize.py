@@ -7,7 +7,7 @@ from conftest import make_scene, run_cli, scene_dict
 
 from cosim.adjoint.objective import Objective
 from cosim.adjoint.optimize import adam
-from cosim.simulation import Simulation
+from cosim.simulation import build_system
 
 
 def steering_scene(**extra):
@@ -25,7 +25,7 @@ def steering_scene(**extra):
 def test_adam_on_impulses_reaches_the_target():
     """Without gravity the centre of mass moves by (total impulse / mass) x time: reachable, so the
     loss (3 cm)^2 = 9e-4 m^2 must fall by more than 100x in 25 iterations."""
-    obj = Objective(Simulation(make_scene(**steering_scene()), requires_grad=True))
+    obj = Objective(build_system(make_scene(**steering_scene()), requires_grad=True))
     params = obj.initial_params()
     result = adam(obj.evaluate, params, ["impulse"], obj.natural_scales(), iterations=25, learning_rate=0.3)
     assert result.losses[0] > 8e-4

@@ -82,11 +82,11 @@ def test_set_state_replay_is_bitwise():
     rng = np.random.default_rng(1)
     actions = rng.normal(size=(60, eng.action_size))
     for a in actions[:20]:
-        eng.step(a)
-    s = eng.state()
-    first = [eng.step(a).next_state for a in actions[20:]]
-    eng.set_state(s)
-    second = [eng.step(a).next_state for a in actions[20:]]
+        eng.advance(a)
+    s = eng.flat_state()
+    first = [eng.advance(a).next_state for a in actions[20:]]
+    eng.set_flat_state(s)
+    second = [eng.advance(a).next_state for a in actions[20:]]
     assert np.array_equal(np.array(first), np.array(second))
     assert np.ptp(np.array(first)[:, eng.dofs + 5]) > 0  # the puck's vertical velocity changed: contact happened
 
@@ -98,8 +98,8 @@ def test_free_fall_matches_semi_implicit_euler():
     eng = RigidEngine([free_body(q0=(0, 0, 0, 0, 0, 1.0), qd0=(0,) * 6)], DT, collision=False)
     n = 300
     for _ in range(n):
-        eng.step()
-    z, vz = eng.state()[5], eng.state()[11]
+        eng.advance()
+    z, vz = eng.flat_state()[5], eng.flat_state()[11]
     assert vz == pytest.approx(-G * n * DT, rel=1e-12)
     assert z == pytest.approx(1.0 - G * DT**2 * n * (n + 1) / 2, rel=1e-12)  # v first, then x += dt v
     t = n * DT
@@ -115,7 +115,7 @@ def pendulum_energy(damping: float, steps: int = 1000) -> tuple[float, float]:
     skel = eng.skeletons[0]
     e0 = skel.computeKineticEnergy() + skel.computePotentialEnergy()
     for _ in range(steps):
-        eng.step()
+        eng.advance()
     return e0, skel.computeKineticEnergy() + skel.computePotentialEnergy()
 
 
@@ -134,7 +134,7 @@ def test_wrench_gives_impulse_response():
     R = eng.body_states()["rotation"][0]
     assert np.allclose(link_mass_properties(spec.links[0])[1], 0)  # COM at the origin: torque about either
     w = np.array([[0.3, -0.2, 0.5, 1.0, -2.0, 3.0]])
-    eng.step(None, w)
+    eng.advance(None, w)
     b = eng.body_states()
     assert np.allclose(b["linear_velocity"][0], w[0, 3:] * DT / 2.0, rtol=1e-12, atol=0)
     I_world = R @ np.diag(inertia) @ R.T
@@ -149,8 +149,8 @@ def test_joint_limits_are_enforced():
     )
     eng = RigidEngine([spec], DT, gravity=(0, 0, 0), collision=False)
     for _ in range(500):
-        eng.step(np.array([1.0]))
-    q = eng.state()[0]
+        eng.advance(np.array([1.0]))
+    q = eng.flat_state()[0]
     assert 0.09 < q < 0.1 + 1e-3  # unlimited it would reach ~ 0.5 a t^2 >> 1 rad
 
 
@@ -158,8 +158,8 @@ def test_rigid_collision_can_be_switched_off():
     def final_z(collision: bool) -> float:
         eng = RigidEngine([ground(), free_body(q0=(0, 0, 0, 0, 0, 0.2), qd0=(0,) * 6)], DT, collision=collision)
         for _ in range(400):
-            eng.step()
-        return eng.state()[5]
+            eng.advance()
+        return eng.flat_state()[5]
 
     assert final_z(True) == pytest.approx(0.15, abs=0.01)  # box half-height 0.15 on the ground top z = 0
     assert final_z(False) < -0.5
@@ -167,14 +167,14 @@ def test_rigid_collision_can_be_switched_off():
 
 def test_non_finite_state_names_skeleton_and_step():
     eng = RigidEngine([free_body(), chain()], DT, collision=False)
-    eng.step()
-    s = eng.state()
+    eng.advance()
+    s = eng.flat_state()
     s[eng.dofs + 6] = np.nan  # stands in for a blow-up (DART zeroes non-finite accelerations, never raises)
-    eng.set_state(s)
+    eng.set_flat_state(s)
     with pytest.raises(SimulationError, match=r"'arm'.*after step 2"):
-        eng.step()
+        eng.advance()
     with pytest.raises(InputError, match="non-finite"):
-        eng.step(np.full(eng.action_size, np.nan))
+        eng.advance(np.full(eng.action_size, np.nan))
 
 
 # -------------------------------------------------------------------------------------------------- vjp
@@ -226,13 +226,13 @@ def central(f, x, h=1e-5):
 def test_step_vjp_matches_finite_differences(name):
     eng = RigidEngine(SYSTEMS[name](), DT, collision=False)
     rng = np.random.default_rng(3)
-    s0 = eng.state()
+    s0 = eng.flat_state()
     a = rng.normal(size=eng.action_size)
     w = rng.normal(size=(len(eng.body_names), 6))
-    record = eng.step(a, w)
+    record = eng.advance(a, w)
     g = rng.normal(size=2 * eng.dofs)
-    grad_s, grad_a, grad_w = eng.vjp(record, g)
-    assert np.array_equal(eng.state(), record.next_state)  # vjp leaves the engine where it was
+    grad_s, grad_a, grad_w = eng.vjp_flat(record, g)
+    assert np.array_equal(eng.flat_state(), record.next_state)  # vjp leaves the engine where it was
 
     def loss(s, a_, w_):
         return g @ eng._advance(s, a_, w_)
@@ -248,11 +248,11 @@ def test_body_states_vjp_matches_finite_differences(name):
     rng = np.random.default_rng(4)
     nb = len(eng.body_names)
     grads = [rng.normal(size=shape) for shape in ((nb, 3), (nb, 3, 3), (nb, 3), (nb, 3))]
-    s0 = eng.state()
+    s0 = eng.flat_state()
     keys = ("position", "rotation", "linear_velocity", "angular_velocity")
 
     def loss(s):
-        eng.set_state(s)
+        eng.set_flat_state(s)
         b = eng.body_states()
         return sum(np.sum(gr * b[k]) for gr, k in zip(grads, keys))
 
@@ -264,7 +264,7 @@ def test_body_states_vjp_matches_finite_differences(name):
 def test_body_velocity_is_origin_velocity():
     eng = RigidEngine([chain()], DT, collision=False)
     b0 = eng.body_states()
-    eng.step()
+    eng.advance()
     b1 = eng.body_states()
     fd = (b1["position"] - b0["position"]) / DT
     assert np.allclose(fd, b1["linear_velocity"], atol=2e-3)  # origin, not COM (differs by ~0.1 m/s here)
@@ -299,9 +299,9 @@ def test_bad_inputs_raise_input_error(tmp_path):
         RigidEngine([SkeletonSpec("s", links=[LinkSpec("l", [BOX], density=1.0, joint="hinge")])], DT)
     eng = RigidEngine([chain()], DT)
     with pytest.raises(InputError, match="length 2, expected 5"):
-        eng.step(np.zeros(2))
+        eng.advance(np.zeros(2))
     with pytest.raises(InputError, match="wrenches"):
-        eng.step(None, np.zeros((1, 6)))
+        eng.advance(None, np.zeros((1, 6)))
     with pytest.raises(InputError, match="unknown control mode"):
         RigidEngine([SkeletonSpec("s", links=[LinkSpec("l", [BOX], density=1.0)], default_control="force")], DT)
     with pytest.raises(InputError, match="needs a free joint"):
@@ -375,9 +375,9 @@ def test_urdf_loads_with_fixed_base_and_mesh_geometry(tmp_path):
     assert eng.dofs == 1 and eng.action_size == 1 and eng.body_names == ["two/base", "two/arm"]
     p0 = eng.body_states()["position"][0].copy()
     for _ in range(400):
-        eng.step(np.array([0.0]))
+        eng.advance(np.array([0.0]))
     assert np.array_equal(eng.body_states()["position"][0], p0)  # welded base holds under gravity
-    assert 0.95 < eng.state()[0] < 1.0 + 2e-3  # the arm (COM above the hinge) topples onto its upper limit
+    assert 0.95 < eng.flat_state()[0] < 1.0 + 2e-3  # the arm (COM above the hinge) topples onto its upper limit
     ((box, T_box),) = eng.link_geometry("two/base")
     assert box.kind == "box" and np.allclose(box.size, (0.2, 0.2, 0.1)) and np.allclose(T_box[:3, 3], (0, 0, 0.05))
     ((mesh, T_mesh),) = eng.link_geometry("arm")

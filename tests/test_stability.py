@@ -7,7 +7,7 @@ import pytest
 from conftest import make_scene, scene_dict
 
 from cosim.errors import SceneError, SimulationError
-from cosim.simulation import Simulation
+from cosim.simulation import build_system
 
 
 def block(**material):
@@ -21,7 +21,7 @@ def test_fixed_substeps_below_the_elastic_bound_is_refused_naming_the_body():
     bodies = [block(E=1e8) | {"name": "steel"}]
     scene = make_scene(time={"frame_dt": 2e-3, "substeps": 2}, mpm={"grid": {"cells": 32}, "bodies": bodies})
     with pytest.raises(SceneError, match=r"time.substeps: .*body 'steel'.*use at least \d+ substeps"):
-        Simulation(scene)
+        build_system(scene)
 
 
 def test_auto_substeps_follow_the_cfl_bound():
@@ -30,7 +30,7 @@ def test_auto_substeps_follow_the_cfl_bound():
     scene = make_scene(
         time={"frame_dt": 4e-3, "substeps": "auto", "cfl": 0.3}, mpm={"grid": {"cells": 32}, "bodies": bodies}, steps=5
     )
-    sim = Simulation(scene)
+    sim = build_system(scene)
     infos = [sim.step() for _ in range(5)]
     assert sim.max_cfl <= 0.3
     # 6 m/s over 4 ms is 0.77 cells; at CFL 0.3 that needs at least 3 substeps
@@ -47,7 +47,7 @@ def test_fixed_substeps_cfl_violation_names_body_and_step():
         }
     ]
     scene = make_scene(time={"frame_dt": 4e-3, "substeps": 4}, mpm={"grid": {"cells": 32}, "bodies": bodies})
-    sim = Simulation(scene)
+    sim = build_system(scene)
     with pytest.raises(SimulationError, match=r"step 0: CFL number .* in body 'bullet'"):
         sim.step()
 
@@ -57,7 +57,7 @@ def test_nan_is_caught_at_the_step_it_appears_with_body_and_quantity():
         block() | {"name": "a"},
         block() | {"name": "b", "shape": {"type": "box", "center": [0.5, 0.2], "size": [0.1, 0.1]}},
     ]
-    sim = Simulation(make_scene(mpm={"grid": {"cells": 32}, "bodies": bodies}))
+    sim = build_system(make_scene(mpm={"grid": {"cells": 32}, "bodies": bodies}))
     sim.step()
     state = sim.mpm.state()
     state["F"][sim.slices["b"].start + 3] = np.nan  # a corrupted deformation gradient in body b
@@ -67,15 +67,15 @@ def test_nan_is_caught_at_the_step_it_appears_with_body_and_quantity():
 
 
 def test_forward_run_allocates_no_gradient_buffers():
-    sim = Simulation(make_scene(controls=[{"body": "block"}]))
+    sim = build_system(make_scene(controls=[{"body": "block"}]))
     assert sim.mpm.n_slots == 2
     assert not sim.mpm.gradient_buffers_allocated()
-    assert Simulation(make_scene(controls=[{"body": "block"}]), requires_grad=True).mpm.gradient_buffers_allocated()
+    assert build_system(make_scene(controls=[{"body": "block"}]), requires_grad=True).mpm.gradient_buffers_allocated()
 
 
 def test_state_round_trip_replays_bit_for_bit():
     """set_state(state()) then the same steps reproduce the same numbers exactly."""
-    sim = Simulation(make_scene(mpm={"grid": {"cells": 32}, "bodies": [block() | {"velocity": [1.0, -1.0]}]}))
+    sim = build_system(make_scene(mpm={"grid": {"cells": 32}, "bodies": [block() | {"velocity": [1.0, -1.0]}]}))
     s0 = sim.mpm.state()
     for _ in range(3):
         sim.step()

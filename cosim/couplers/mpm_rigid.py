@@ -13,11 +13,11 @@ One macro step n (rigid dt = K x MPM dt = the frame):
     rigid       s_D^{n+1} = DART step(s_D^n, a^n, F^n).
 
 Backward, per step, exactly the paper's chain rule: the rigid vjp gives dL/ds_D^n
-(own dynamics), dL/da^n and dL/dF^n; dL/dF^n is seeded on the reaction adjoints, so
-the MPM vjp returns dL/ds_M^n with both the direct path and the path through F^{n+1},
-and dL/d(boundary states), which carries the force path and the boundary path into
-s_M^{n+1}; the boundary adjoint goes back through the substep motion and DART's
-kinematics to dL/ds_D^n.
+(own dynamics), dL/da^n and dL/dF^n; ``forces_vjp`` turns dL/dF^n into reaction
+adjoints, which the MPM vjp takes as an argument and returns dL/ds_M^n with both the
+direct path and the path through F^{n+1}, and dL/d(boundary states), which carries the
+force path and the boundary path into s_M^{n+1}; ``boundary_vjp`` takes the boundary
+adjoint back through the substep motion and DART's kinematics to dL/ds_D^n.
 
 2D scenes: DART is 3D; bodies move in the xy-plane (planar or z-axis joints) and the
 MPM sees (x, y), the 2x2 rotation and the z angular velocity; the reactions come back
@@ -105,7 +105,7 @@ def substep_states_vjp(g: BodyStates, b: BodyStates, dt: float) -> BodyStates:
 
 
 def to_mpm(s: BodyStates, dim: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """What ``RigidBoundaries.set_states`` takes: 3D as is; 2D the xy-plane and the z spin."""
+    """(pos, rot, vel, omega) as the MPM's boundary states: 3D as is; 2D the xy-plane and the z spin."""
     if dim == 3:
         return s.pos, s.R, s.v, s.w
     return s.pos[..., :2], s.R[..., :2, :2], s.v[..., :2], s.w[..., 2:]
@@ -123,7 +123,7 @@ def from_mpm(grads: dict[str, np.ndarray], dim: int) -> BodyStates:
 
 
 def lift_reactions(impulse: np.ndarray, angular: np.ndarray, dim: int) -> tuple[np.ndarray, np.ndarray]:
-    """Substep reactions from ``RigidBoundaries.reactions`` as 3D vectors."""
+    """Substep reactions (impulse, angular impulse) from the MPM's boundary source as 3D vectors."""
     if dim == 3:
         return impulse, angular
     lead = impulse.shape[:-1]
@@ -151,83 +151,71 @@ def average_wrench_vjp(gW: np.ndarray, J: np.ndarray, pos_k: np.ndarray, pos: np
 
 @dataclass
 class CoupledRecord:
-    """What the backward pass needs about one coupled step besides the MPM's own record."""
+    """One coupled step as the coupler's vjp needs it: filled by ``boundary``, completed by ``forces``."""
 
-    rigid: object  # the rigid engine's StepRecord
+    state: np.ndarray  # the rigid engine's flat state at s_D^n
     bodies: BodyStates  # coupled bodies at s_D^n
-    J: np.ndarray  # (K, m, 3) reaction impulses per substep
-    pos_k: np.ndarray  # (K, m, 3) body origins per substep
     dt: float
     substeps: int
+    J: np.ndarray | None = None  # (K, m, 3) reaction impulses per substep
+    pos_k: np.ndarray | None = None  # (K, m, 3) body origins per substep
 
 
 class MPMRigidCoupler:
     """Moves DART bodies' SDFs through the MPM and hands the averaged reactions back to DART.
 
     ``coupled``: indices into ``rigid.body_names`` of the bodies the MPM sees, in the order of
-    their ``RigidBoundaries`` slots ``first_slot, first_slot + 1, ...`` (kinematic bodies take
-    the slots before). Bodies not listed (a floor, a fixed palm) cost nothing in the MPM.
+    the bodies of boundary source ``source`` (a ``RigidBoundaries``). Bodies not listed (a
+    floor, a fixed palm) cost nothing in the MPM. Conforms to ``cosim.engines.contract.Coupler``.
     """
 
-    def __init__(self, rigid, boundaries, coupled: list[int], first_slot: int, dim: int):
+    def __init__(self, rigid, coupled: list[int], dim: int, name: str = "dart"):
         self.rigid = rigid
-        self.boundaries = boundaries
         self.coupled = list(coupled)
-        self.first = first_slot
         self.dim = dim
-        self.slots = slice(first_slot, first_slot + len(coupled))
+        self.name = self.source = name
+        self.engine = rigid.name
 
     def current_bodies(self) -> BodyStates:
         s = self.rigid.body_states()
         c = self.coupled
-        return BodyStates(
-            s["position"][c], s["rotation"][c], s["linear_velocity"][c], s["angular_velocity"][c]
-        )
+        return BodyStates(s["position"][c], s["rotation"][c], s["linear_velocity"][c], s["angular_velocity"][c])
 
-    def boundary_arrays(self, bodies: BodyStates, dt: float, K: int):
-        """(pos, rot, vel, omega) per substep (K, m, ...) in the MPM's dimension."""
-        return to_mpm(substep_states(bodies, dt, K), self.dim)
+    def boundary(self, dt: float, substeps: int) -> tuple[dict, CoupledRecord]:
+        """The coupled bodies at the engine's current state, moved with their twists through the substeps."""
+        bodies = self.current_bodies()
+        pos, rot, vel, omega = to_mpm(substep_states(bodies, dt, substeps), self.dim)
+        record = CoupledRecord(self.rigid.flat_state(), bodies, dt, substeps)
+        return {"pos": pos, "rot": rot, "vel": vel, "omega": omega}, record
 
-    def finish_step(self, bodies: BodyStates, action: np.ndarray | None, dt: float, K: int) -> CoupledRecord:
-        """After the MPM's K substeps: average the reactions and step DART."""
-        if not self.coupled:  # nothing touches the MPM
-            zero = np.zeros((K, 0, 3))
-            return CoupledRecord(self.rigid.step(action, None), bodies, zero, zero, dt, K)
-        impulse, angular = self.boundaries.reactions(K)
-        J, L = lift_reactions(impulse[:, self.slots], angular[:, self.slots], self.dim)
-        pos_k = substep_origins(bodies, dt, K)
+    def forces(self, record: CoupledRecord, reactions: dict) -> np.ndarray:
+        """Per-body wrenches (len(body_names), 6) for DART: the substep reactions averaged over the frame."""
+        K, dt = record.substeps, record.dt
+        record.J, L = lift_reactions(reactions["impulse"], reactions["angular_impulse"], self.dim)
+        record.pos_k = substep_origins(record.bodies, dt, K)
         wrenches = np.zeros((len(self.rigid.body_names), 6))
-        wrenches[self.coupled] = average_wrench(J, L, pos_k, bodies.pos, K * dt)
-        record = self.rigid.step(action, wrenches)
-        return CoupledRecord(record, bodies, J, pos_k, dt, K)
+        wrenches[self.coupled] = average_wrench(record.J, L, record.pos_k, record.bodies.pos, K * dt)
+        return wrenches
 
-    def seed_reaction_grads(self, rec: CoupledRecord, grad_wrenches: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Put dL/dF on the reaction adjoints of the coupled slots; returns the torque-arm gradients
-        (dL/dp_k (K, m, 3), dL/dp (m, 3))."""
-        if not self.coupled:
-            return np.zeros((rec.substeps, 0, 3)), np.zeros((0, 3))
+    def forces_vjp(self, record: CoupledRecord, grad_forces: np.ndarray) -> tuple[dict, tuple]:
+        """dL/d(wrenches) -> dL/d(reactions) in the MPM's layout, and the torque arms' gradients
+        (dL/dp_k (K, m, 3), dL/dp (m, 3)) carried to ``boundary_vjp``."""
         gJ, gL, gpk, gp = average_wrench_vjp(
-            grad_wrenches[self.coupled], rec.J, rec.pos_k, rec.bodies.pos, rec.substeps * rec.dt
+            grad_forces[self.coupled], record.J, record.pos_k, record.bodies.pos, record.substeps * record.dt
         )
-        K, n = rec.substeps, self.boundaries.n
-        gi, ga = np.zeros((K, n, self.dim)), np.zeros((K, n, self.boundaries.wdim))
-        if self.dim == 3:
-            gi[:, self.slots], ga[:, self.slots] = gJ, gL
-        else:
-            gi[:, self.slots], ga[:, self.slots] = gJ[..., :2], gL[..., 2:]
-        self.boundaries.seed_reaction_grads(gi, ga)
-        return gpk, gp
+        if self.dim == 2:
+            gJ, gL = gJ[..., :2], gL[..., 2:]
+        return {"impulse": gJ, "angular_impulse": gL}, (gpk, gp)
 
-    def boundary_vjp(self, rec: CoupledRecord, arm_grads: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
-        """dL/ds_D^n through the boundary states (after the MPM vjp filled their adjoints)."""
-        if not self.coupled:
-            return np.zeros(2 * self.rigid.dofs)
-        grads = self.boundaries.state_grads(rec.substeps)
-        per_substep = from_mpm({k: v[:, self.slots] for k, v in grads.items()}, self.dim)
-        per_substep.pos = per_substep.pos + arm_grads[0]
-        g = substep_states_vjp(per_substep, rec.bodies, rec.dt)
+    def boundary_vjp(self, record: CoupledRecord, grad_boundary: dict, carry: tuple) -> dict[str, np.ndarray]:
+        """dL/ds_D^n (the engine's state layout) through the boundary states and the torque arms."""
+        per_substep = from_mpm(grad_boundary, self.dim)
+        per_substep.pos = per_substep.pos + carry[0]
+        g = substep_states_vjp(per_substep, record.bodies, record.dt)
         nb = len(self.rigid.body_names)
         full = [np.zeros((nb, 3)), np.zeros((nb, 3, 3)), np.zeros((nb, 3)), np.zeros((nb, 3))]
-        full[0][self.coupled] = g.pos + arm_grads[1]
+        full[0][self.coupled] = g.pos + carry[1]
         full[1][self.coupled], full[2][self.coupled], full[3][self.coupled] = g.R, g.v, g.w
-        return self.rigid.body_states_vjp(*full, state=rec.rigid.state)
+        flat = self.rigid.body_states_vjp(*full, state=record.state)
+        n = self.rigid.dofs
+        return {"q": flat[:n], "qd": flat[n:]}

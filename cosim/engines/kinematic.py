@@ -159,3 +159,68 @@ class Motion:
             spin = np.cross(np.asarray(w), r)
         out = v + spin
         return out[0] if np.ndim(x) == 1 else out
+
+
+def kinematic_states(motions: list[Motion], t0: float, dt: float, K: int) -> dict[str, np.ndarray]:
+    """BoundaryStates (``cosim.engines.contract``) of bodies following ``motions``, sampled at the
+    start of each substep t0 + s dt, s = 0..K-1: pos (K, m, d), rot (K, m, d, d), vel (K, m, d),
+    omega (K, m, 1|3)."""
+    dim = motions[0].dim
+    m = len(motions)
+    out = {
+        "pos": np.zeros((K, m, dim)),
+        "rot": np.zeros((K, m, dim, dim)),
+        "vel": np.zeros((K, m, dim)),
+        "omega": np.zeros((K, m, 1 if dim == 2 else 3)),
+    }
+    for s in range(K):
+        for b, motion in enumerate(motions):
+            out["pos"][s, b], out["rot"][s, b] = motion.pose(t0 + s * dt)
+            out["vel"][s, b], w = motion.twist(t0 + s * dt)
+            out["omega"][s, b] = w
+    return out
+
+
+class KinematicEngine:
+    """Bodies following prescribed motions, as an engine ("kinematic") of the coupled loop.
+
+    State: ``steps`` (1,), the macro steps taken; the time is steps x ``frame_dt`` [s].
+    No actions; external forces are ignored (the motion is prescribed), so the step's
+    vjp is zero: a kinematic body passes no gradient back (its motion is not a parameter).
+    """
+
+    name = "kinematic"
+
+    def __init__(self, motions: list[Motion], names: list[str], frame_dt: float):
+        self.motions = list(motions)
+        self.names = list(names)
+        self.frame_dt = float(frame_dt)
+        self._steps = 0
+
+    @property
+    def time(self) -> float:
+        """The current time [s]."""
+        return self._steps * self.frame_dt
+
+    def state(self) -> dict[str, np.ndarray]:
+        return {"steps": np.array([float(self._steps)])}
+
+    def set_state(self, state: dict[str, np.ndarray]) -> None:
+        self._steps = int(round(float(state["steps"][0])))
+
+    def step(self, inputs: dict) -> tuple[dict, None]:
+        """Advance one frame; ``inputs`` (action, forces) have no effect on a prescribed motion."""
+        if inputs.get("action") is not None and np.size(inputs["action"]):
+            raise ValueError("kinematic bodies take no action (their motion is prescribed in the scene)")
+        self._steps += 1
+        return {"state": self.state()}, None
+
+    def vjp(self, record: None, grad_outputs: dict) -> dict:
+        return {"state": {"steps": np.zeros(1)}, "action": None, "forces": None}
+
+    def parameters(self) -> list:
+        return []
+
+    def poses(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """(position, rotation) of every body now."""
+        return [m.pose(self.time) for m in self.motions]

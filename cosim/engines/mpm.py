@@ -1,434 +1,101 @@
-"""Differentiable MLS-MPM in Taichi: one implementation for 2D and 3D.
+"""The MPM engine adapter: hooks for the contact models and the engine contract (``cosim.engines.contract``).
 
-Moving least squares MPM (Hu et al. 2018) with quadratic B-splines and APIC
-affine momentum. Units are SI: positions [m], velocities [m/s], masses [kg],
-stresses [Pa], impulses [N s]. The domain is the box [0, cells * dx]^d.
+Gradients come from Taichi's reverse-mode autodiff (each substep's kernels'
+``.grad()`` in reverse order). States between macro steps are kept by the tape on
+the host (a record holds the state before its step), and ``vjp`` recomputes the
+substeps of the step it differentiates unless they are still resident from the
+forward pass. Memory is O(S N + K (N + grid)), never O(S K N).
 
-Particle state lives in *slots*: ``x[slot, p]`` etc. A forward-only engine
-uses two slots (ping-pong) and one grid. An engine built with ``requires_grad``
-keeps ``substeps + 1`` slots and one grid (and stress scratch) per substep, so
-one macro step is all resident for Taichi's reverse-mode autodiff and the
-adjoint never re-runs P2G; states between macro steps are kept by the tape on
-the host (checkpoints), and ``vjp`` recomputes the substeps of the step it
-differentiates. Memory is O(S N + K (N + grid)), never O(S K N).
-
-One substep, split into the phases a coupler drives (see DESIGN.md):
-
-- pre-coupling  ``p2g``: stress from F (per material), scatter of mass,
-  APIC momentum, stress momentum and external impulses (controls; the hook for
-  particle-penalty contact) onto the grid;
-- coupling      ``grid_update``: momentum to velocity, gravity, domain walls
-  (the hook for grid / forecast contact on ``grid_v``);
-- post-coupling ``g2p``: gather velocity and affine field; ``advect`` (per
-  material): move particles, update F, apply the material's return mapping.
+Boundary sources (``cosim.couplers.boundary``) are attached by name; each step's
+``inputs["boundaries"]`` gives every source its per-substep states and the step's
+``outputs["reactions"]`` returns what the contact models handed back. The engine
+knows sources and hooks only through their methods, never by type.
 """
 
-import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import taichi as ti
 
-from cosim.engines.materials import MATERIALS, lame_parameters
+from cosim.engines.mpm_kernels import STATE_KEYS, MPMConfig, MPMKernels, ParticleBody
+
+__all__ = ["MPMConfig", "MPMEngine", "MPMRecord", "ParticleBody", "STATE_KEYS"]
 
 
 @dataclass
-class ParticleBody:
-    """One soft body: its particles and material. Arrays are (n, dim)."""
+class MPMRecord:
+    """What ``vjp`` needs about one macro step."""
 
-    name: str
-    material: str  # 'elastic' | 'plastic' | 'liquid'
-    E: float  # Young's modulus [Pa]
-    nu: float  # Poisson's ratio [-]
-    density: float  # [kg/m^3]
-    particle_volume: float  # [m^d] volume each particle stands for
-    positions: np.ndarray
-    velocities: np.ndarray
-    yield_stress: float = math.inf  # [Pa], plastic only
-    viscosity: float = 0.0  # [Pa s], liquid only
-    deformation: np.ndarray | None = None  # (n, d, d) initial F, default identity
-
-    @property
-    def n(self) -> int:
-        return len(self.positions)
-
-    @property
-    def particle_mass(self) -> float:
-        return self.density * self.particle_volume
-
-
-@dataclass
-class MPMConfig:
-    """Grid, walls and gravity. ``cells`` per axis; dx [m]; gravity [m/s^2]."""
-
-    dim: int
-    cells: tuple[int, ...]
-    dx: float
-    gravity: tuple[float, ...]
-    wall: str = "slip"  # 'slip' | 'sticky' | 'none'
-    wall_cells: int = 3
-    requires_grad: bool = False
-    grad_substeps: int = 1  # gradient mode: substeps per macro step (slots = this + 1)
-    has_controls: bool = False
-    serial_p2g: bool = True  # single-threaded non-atomic scatter (faster on CPUs)
-
-
-@dataclass
-class StepInfo:
+    state: dict[str, np.ndarray]  # before the step
+    dt: float  # [s] substep
     substeps: int
-    dt: float
-    token: int
+    impulse: np.ndarray | None = None  # (N, d) [N s]
+    boundaries: dict = field(default_factory=dict)  # {source: BoundaryStates}
+    token: int = -1  # the engine's id of this forward step (lets vjp skip a recompute)
 
-
-STATE_KEYS = ("x", "v", "C", "F")
+    @property
+    def nbytes(self) -> int:
+        arrays = list(self.state.values()) + ([] if self.impulse is None else [self.impulse])
+        arrays += [a for b in self.boundaries.values() for a in b.values()]
+        return sum(a.nbytes for a in arrays)
 
 
 @ti.data_oriented
-class MPMEngine:
-    """The MPM engine adapter: ``state`` / ``set_state`` / ``step`` / ``vjp``."""
+class MPMEngine(MPMKernels):
+    """The soft-body engine ("mpm"): ``state`` / ``set_state`` / ``step`` / ``vjp`` / ``parameters``."""
+
+    name = "mpm"
 
     def __init__(self, config: MPMConfig, bodies: list[ParticleBody]):
-        if not bodies:
-            raise ValueError("MPMEngine needs at least one body")
-        self.cfg = config
-        self.dim = d = config.dim
-        self.bodies = bodies
-        self.n_particles = n = sum(b.n for b in bodies)
-        self.dx = float(config.dx)
-        self.inv_dx = 1.0 / self.dx
-        starts = np.cumsum([0] + [b.n for b in bodies])
-        self.ranges = [(int(starts[i]), int(starts[i + 1])) for i in range(len(bodies))]
-        self.materials = [MATERIALS[b.material]() for b in bodies]
-        grad = config.requires_grad
-        self.n_slots = config.grad_substeps + 1 if grad else 2
+        self.boundaries: dict = {}  # name -> boundary source
+        super().__init__(config, bodies)
 
-        self.x = ti.Vector.field(d, float, shape=(self.n_slots, n), needs_grad=grad)
-        self.v = ti.Vector.field(d, float, shape=(self.n_slots, n), needs_grad=grad)
-        self.C = ti.Matrix.field(d, d, float, shape=(self.n_slots, n), needs_grad=grad)
-        self.F = ti.Matrix.field(d, d, float, shape=(self.n_slots, n), needs_grad=grad)
-        nb = len(bodies)
-        self.E = ti.field(float, shape=nb, needs_grad=grad)
-        self.nu = ti.field(float, shape=nb, needs_grad=grad)
-        self.yield_stress = ti.field(float, shape=nb)
-        self.viscosity = ti.field(float, shape=nb)
-        self.p_mass = ti.field(float, shape=nb)
-        self.p_vol = ti.field(float, shape=nb)
-        self.body_id = ti.field(ti.i32, shape=n)  # which body each particle belongs to
-        # Grid and per-particle stress scratch: one copy per substep with
-        # gradients (the adjoint reads them back instead of recomputing P2G),
-        # one copy otherwise. g below is that copy's index.
-        self.nodes = tuple(int(c) + 1 for c in config.cells)  # nodes at 0, dx, ..., cells * dx
-        self.n_grids = config.grad_substeps if grad else 1
-        self.grid_mom = ti.Vector.field(d, float, shape=(self.n_grids, *self.nodes), needs_grad=grad)
-        self.grid_m = ti.field(float, shape=(self.n_grids, *self.nodes), needs_grad=grad)
-        self.grid_v = ti.Vector.field(d, float, shape=(self.n_grids, *self.nodes), needs_grad=grad)
-        self.gravity = ti.Vector([float(g) for g in config.gravity])
-        self.affine = ti.Matrix.field(d, d, float, shape=(self.n_grids, n), needs_grad=grad)
-        self.control = None
-        if config.has_controls:
-            self.control = ti.Vector.field(d, float, shape=n, needs_grad=grad)
+    # ------------------------------------------------------------ hooks and sources
+    def attach_grid_hook(self, hook):
+        """Let a contact model rewrite grid velocities after the grid update; returns its upstream.
 
-        self.real = np.float64 if self.x.dtype == ti.f64 else np.float32
-        self.E.from_numpy(self._real([b.E for b in bodies]))
-        self.nu.from_numpy(self._real([b.nu for b in bodies]))
-        self.yield_stress.from_numpy(self._real([min(b.yield_stress, 1e30) for b in bodies]))
-        self.viscosity.from_numpy(self._real([b.viscosity for b in bodies]))
-        self.p_mass.from_numpy(self._real([b.particle_mass for b in bodies]))
-        self.p_vol.from_numpy(self._real([b.particle_volume for b in bodies]))
-        self.mass = np.concatenate([np.full(b.n, b.particle_mass) for b in bodies])
-        self.body_id.from_numpy(np.concatenate([np.full(b.n, i, dtype=np.int32) for i, b in enumerate(bodies)]))
-        self._serial = bool(config.serial_p2g)
-        self._hook = None
-        self._particle_hook = None
-        self._grid_out = self  # what G2P gathers velocities from (``velocity(g, I)``): a hook once attached
-        self._slot = 0
-        self._token = 0
-        self._resident = -1  # token of the step whose substeps fill the slots
-        eye = np.eye(d)
-        self.set_state(
-            {
-                "x": np.concatenate([b.positions for b in bodies]),
-                "v": np.concatenate([b.velocities for b in bodies]),
-                "C": np.zeros((n, d, d)),
-                "F": np.concatenate(
-                    [np.broadcast_to(eye, (b.n, d, d)) if b.deformation is None else b.deformation for b in bodies]
-                ),
-            }
-        )
-
-    def _real(self, values) -> np.ndarray:
-        """Host array in the engine's precision (float32 or float64)."""
-        return np.asarray(values, dtype=self.real)
-
-    # ------------------------------------------------------------------ kernels
-    @ti.func
-    def _stencil(self, xp):
-        """Base node, fractional position and quadratic B-spline weights."""
-        lim = ti.Vector(self.nodes) - 3
-        base = ti.max(ti.min(ti.cast(xp * self.inv_dx - 0.5, ti.i32), lim), 0)
-        fx = xp * self.inv_dx - ti.cast(base, float)
-        w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
-        return base, fx, w
-
-    @ti.func
-    def stencil_weight(self, w: ti.template(), offset: ti.template()):
-        """Product of the per-axis B-spline weights of stencil node ``offset`` (both compile-time)."""
-        weight = 1.0
-        for k in ti.static(range(self.dim)):
-            weight *= w[offset[k]][k]
-        return weight
-
-    @ti.func
-    def mass_of(self, p):
-        """Mass [kg] of particle p."""
-        return self.p_mass[self.body_id[p]]
-
-    @ti.func
-    def _lame(self, b):
-        E, nu = self.E[b], self.nu[b]
-        return E / (2.0 * (1.0 + nu)), E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
-
-    @ti.kernel
-    def _clear_grid(self, g: ti.i32):
-        for I in ti.grouped(ti.ndrange(*self.nodes)):
-            self.grid_mom[g, I] = ti.Vector.zero(float, self.dim)
-            self.grid_m[g, I] = 0.0
-            self.grid_v[g, I] = ti.Vector.zero(float, self.dim)
-            for fld in ti.static(self._hook_scratch()):
-                fld[g, I] = ti.Vector.zero(float, self.dim)
-
-    @ti.func
-    def velocity(self, g, I):
-        """Grid velocity G2P gathers at node I of grid copy g (a grid hook may supply its own)."""
-        return self.grid_v[g, I]
-
-    @ti.kernel
-    def _stress(self, mat: ti.template(), b: ti.i32, start: ti.i32, end: ti.i32, src: ti.i32, g: ti.i32, dt: float):
-        """Affine momentum per particle: stress term plus APIC m C (parallel)."""
-        for p in range(start, end):
-            mu, lam = self._lame(b)
-            m_p, vol = self.p_mass[b], self.p_vol[b]
-            tau = mat.kirchhoff(self.F[src, p], self.C[src, p], mu, lam, self.viscosity[b])
-            self.affine[g, p] = (-dt * vol * 4.0 * self.inv_dx * self.inv_dx) * tau + m_p * self.C[src, p]
-
-    @ti.kernel
-    def _p2g(
-        self, serial: ti.template(), b: ti.i32, start: ti.i32, end: ti.i32, src: ti.i32, g: ti.i32, control_share: float
-    ):
-        """Scatter mass and momentum. ``serial``: one thread, non-atomic adds (faster than
-        atomics on CPUs); its adjoint is a gather and runs with ``serial=False``."""
-        ti.loop_config(serialize=serial)
-        for p in range(start, end):
-            m_p = self.p_mass[b]
-            base, fx, w = self._stencil(self.x[src, p])
-            affine = self.affine[g, p]
-            mom = m_p * self.v[src, p]
-            if ti.static(self.cfg.has_controls):
-                mom += control_share * self.control[p]
-            if ti.static(self._has_particle_hook()):
-                mom += self._particle_hook.output[g, p]
-            for offset in ti.static(ti.grouped(ti.ndrange(*([3] * self.dim)))):
-                dpos = (offset - fx) * self.dx
-                weight = self.stencil_weight(w, offset)
-                self.grid_mom[g, base + offset] += weight * (mom + affine @ dpos)
-                self.grid_m[g, base + offset] += weight * m_p
-
-    @ti.kernel
-    def _grid_update(self, g: ti.i32, dt: float, mass_floor: float):
-        for I in ti.grouped(ti.ndrange(*self.nodes)):
-            m = self.grid_m[g, I]
-            vel = ti.Vector.zero(float, self.dim)
-            if m > mass_floor:
-                vel = self.grid_mom[g, I] / m + dt * self.gravity
-                if ti.static(self.cfg.wall != "none"):
-                    for k in ti.static(range(self.dim)):
-                        low = I[k] < self.cfg.wall_cells and vel[k] < 0
-                        high = I[k] > self.nodes[k] - 1 - self.cfg.wall_cells and vel[k] > 0
-                        if low or high:
-                            if ti.static(self.cfg.wall == "sticky"):
-                                vel = ti.Vector.zero(float, self.dim)
-                            else:
-                                vel[k] = 0.0
-            self.grid_v[g, I] = vel
-            if ti.static(self._fused_clear()):
-                # forward-only: leave the grid cleared for the next P2G (saves a pass);
-                # with gradients the backward pass reads these values back, and
-                # a contact hook reads the masses after this kernel
-                self.grid_mom[g, I] = ti.Vector.zero(float, self.dim)
-                self.grid_m[g, I] = 0.0
-
-    @ti.kernel
-    def _g2p(self, serial: ti.template(), src: ti.i32, dst: ti.i32, g: ti.i32, source: ti.template()):
-        """Gather velocity and affine field from the grid into slot ``dst``.
-
-        A parallel gather; its adjoint scatters onto the grid, so it runs with
-        ``serial=True`` (non-atomic adds), while the costly per-particle update
-        below keeps a parallel adjoint.
+        The hook reads the velocity upstream of it (``upstream.velocity(g, I)``: the engine's
+        ``grid_v`` or the previous grid hook's output) and never writes it in place (the
+        adjoint needs the input); G2P gathers from the last hook's ``@ti.func velocity(g, I)``.
+        Fields listed in ``hook.scratch`` (grid-shaped vectors) are zeroed with the grid at
+        the start of each substep. Methods: ``apply(src, g, s, dt)`` for substep s of the
+        macro step, particles in slot src, grid copy g; ``apply_grad(src, g, s, dt)``;
+        ``zero_grad()`` (its own adjoints only).
         """
-        ti.loop_config(serialize=serial)
-        for p in range(self.n_particles):
-            base, fx, w = self._stencil(self.x[src, p])
-            new_v = ti.Vector.zero(float, self.dim)
-            new_C = ti.Matrix.zero(float, self.dim, self.dim)
-            for offset in ti.static(ti.grouped(ti.ndrange(*([3] * self.dim)))):
-                dpos = offset - fx
-                weight = self.stencil_weight(w, offset)
-                node_v = source.velocity(g, base + offset)
-                new_v += weight * node_v
-                new_C += (4.0 * self.inv_dx * weight) * node_v.outer_product(dpos)
-            self.v[dst, p] = new_v
-            self.C[dst, p] = new_C
-
-    @ti.kernel
-    def _advect(self, mat: ti.template(), b: ti.i32, start: ti.i32, end: ti.i32, src: ti.i32, dst: ti.i32, dt: float):
-        """Move particles and update F with the material's return mapping (per body, parallel)."""
-        for p in range(start, end):
-            mu, lam = self._lame(b)
-            self.x[dst, p] = self.x[src, p] + dt * self.v[dst, p]
-            F_trial = (ti.Matrix.identity(float, self.dim) + dt * self.C[dst, p]) @ self.F[src, p]
-            self.F[dst, p] = mat.project(F_trial, mu, lam, self.yield_stress[b])
-
-    @ti.kernel
-    def _copy_slot(self, src: ti.i32, dst: ti.i32):
-        for p in range(self.n_particles):
-            self.x[dst, p] = self.x[src, p]
-            self.v[dst, p] = self.v[src, p]
-            self.C[dst, p] = self.C[src, p]
-            self.F[dst, p] = self.F[src, p]
-
-    @ti.kernel
-    def _read_slot(self, fld: ti.template(), slot: ti.i32, out: ti.types.ndarray()):
-        """Copy one slot of a particle field (or its adjoint) into out (n, d) or (n, d, d)."""
-        for p in range(self.n_particles):
-            if ti.static(fld.m == 1):
-                for i in ti.static(range(fld.n)):
-                    out[p, i] = fld[slot, p][i]
-            else:
-                for i, j in ti.static(ti.ndrange(fld.n, fld.m)):
-                    out[p, i, j] = fld[slot, p][i, j]
-
-    @ti.kernel
-    def _write_slot(self, fld: ti.template(), slot: ti.i32, src: ti.types.ndarray()):
-        for p in range(self.n_particles):
-            if ti.static(fld.m == 1):
-                for i in ti.static(range(fld.n)):
-                    fld[slot, p][i] = src[p, i]
-            else:
-                for i, j in ti.static(ti.ndrange(fld.n, fld.m)):
-                    fld[slot, p][i, j] = src[p, i, j]
-
-    def _get(self, fld, slot: int) -> np.ndarray:
-        shape = (self.n_particles, self.dim) if fld.m == 1 else (self.n_particles, self.dim, self.dim)
-        out = np.empty(shape, dtype=self.real)
-        self._read_slot(fld, slot, out)
-        return out.astype(np.float64)
-
-    def _put(self, fld, slot: int, values: np.ndarray) -> None:
-        self._write_slot(fld, slot, np.ascontiguousarray(values, dtype=self.real))
-
-    # ------------------------------------------------------------ substep phases
-    def _mass_floor(self) -> float:
-        # float32 only: nodes lighter than 1e-8 particle masses count as empty,
-        # since the adjoint of p/m needs 1/m^2, which overflows float32 at nodes
-        # touched only by a far weight tail. The momentum so dropped is below
-        # float32 round-off; float64 needs no floor and keeps momentum exact.
-        if self.real == np.float64:
-            return 0.0
-        return 1e-8 * float(min(b.particle_mass for b in self.bodies))
-
-    def _hook_scratch(self) -> list:
-        """Grid-shaped vector fields of the grid hook that the grid clear zeroes each substep."""
-        return list(getattr(self._hook, "scratch", ())) if self._hook is not None else []
-
-    def _has_particle_hook(self) -> bool:
-        return self._particle_hook is not None
-
-    def _fused_clear(self) -> bool:
-        """Forward-only engines without a grid hook clear the grid inside grid_update."""
-        return not self.cfg.requires_grad and self._hook is None
-
-    def _grid_index(self, src: int) -> int:
-        """The grid copy substep ``src`` uses: its own with gradients, the only one otherwise."""
-        return src if self.cfg.requires_grad else 0
-
-    def pre_coupling(self, src: int, s: int, dt: float, control_share: float = 0.0) -> None:
-        """Clear the grid, let the particle hook compute its momenta, scatter every body (P2G)."""
-        g = self._grid_index(src)
-        if not self._fused_clear():  # else grid_update clears it
-            self._clear_grid(g)
-        if self._particle_hook is not None:
-            self._particle_hook.apply(src, g, s, dt)
-        for b, (mat, (lo, hi)) in enumerate(zip(self.materials, self.ranges)):
-            self._stress(mat, b, lo, hi, src, g, dt)
-            self._p2g(self._serial, b, lo, hi, src, g, control_share)
-
-    def attach_grid_hook(self, hook) -> None:
-        """Let a contact model rewrite grid velocities after the grid update.
-
-        The hook reads ``grid_v[g]`` and never writes it (the adjoint needs
-        the input); G2P gathers from the hook's ``@ti.func velocity(g, I)``.
-        Fields listed in ``hook.scratch`` (grid-shaped vectors) are zeroed with
-        the grid at the start of each substep. Methods: ``apply(src, g, s,
-        dt)`` for substep s of the macro step, particles in slot src, grid
-        copy g; ``apply_grad(src, g, s, dt)``; ``zero_grad()``.
-        """
-        if self._hook is not None:
-            raise ValueError("one grid hook per engine")
-        if self._token > 0:
-            raise ValueError("attach grid hooks before the first step (kernels are specialised on them)")
-        self._hook = hook
+        self._check_unspecialised("grid hooks")
+        upstream = self._grid_out
+        self.grid_hooks.append(hook)
         self._grid_out = hook
+        return upstream
 
     def attach_particle_hook(self, hook) -> None:
         """Let a contact model add momentum [N s] to particles in P2G (e.g. penalty forces).
 
-        Before each P2G the hook fills ``hook.output[g, p]``; methods
+        Before each P2G every particle hook fills ``hook.output[g, p]``; methods
         ``apply(src, g, s, dt)``, ``apply_grad(src, g, s, dt)``, ``zero_grad()``.
         """
-        if self._particle_hook is not None:
-            raise ValueError("one particle hook per engine")
+        self._check_unspecialised("particle hooks")
+        self.particle_hooks.append(hook)
+
+    def attach_boundary(self, name: str, source) -> None:
+        """A boundary source the contact models read; its states come in ``inputs["boundaries"][name]``."""
+        self._check_unspecialised("boundary sources")
+        if name in self.boundaries:
+            raise ValueError(f"a boundary source named '{name}' is already attached")
+        self.boundaries[name] = source
+
+    def _check_unspecialised(self, what: str) -> None:
         if self._token > 0:
-            raise ValueError("attach particle hooks before the first step (kernels are specialised on them)")
-        self._particle_hook = hook
-
-    def coupling(self, src: int, s: int, dt: float) -> None:
-        """Grid update (velocities, gravity, walls), then the contact model's grid hook."""
-        g = self._grid_index(src)
-        self._grid_update(g, dt, self._mass_floor())
-        if self._hook is not None:
-            self._hook.apply(src, g, s, dt)
-
-    def post_coupling(self, src: int, dst: int, dt: float) -> None:
-        """Gather from the grid (G2P), advect and update deformation per body."""
-        self._g2p(False, src, dst, self._grid_index(src), self._grid_out)
-        for b, (mat, (lo, hi)) in enumerate(zip(self.materials, self.ranges)):
-            self._advect(mat, b, lo, hi, src, dst, dt)
-
-    def _substep(self, src: int, dst: int, dt: float, control_share: float, s: int) -> None:
-        self.pre_coupling(src, s, dt, control_share)
-        self.coupling(src, s, dt)
-        self.post_coupling(src, dst, dt)
-
-    def _substep_grad(self, s: int, dt: float, control_share: float) -> None:
-        """Adjoint of substep s (slots s -> s + 1); its grid and stress copies are still held."""
-        for b in reversed(range(len(self.bodies))):
-            lo, hi = self.ranges[b]
-            self._advect.grad(self.materials[b], b, lo, hi, s, s + 1, dt)
-        self._g2p.grad(self._serial, s, s + 1, s, self._grid_out)
-        if self._hook is not None:
-            self._hook.apply_grad(s, s, s, dt)
-        self._grid_update.grad(s, dt, self._mass_floor())
-        for b in reversed(range(len(self.bodies))):
-            lo, hi = self.ranges[b]
-            self._p2g.grad(False, b, lo, hi, s, s, control_share)
-            self._stress.grad(self.materials[b], b, lo, hi, s, s, dt)
-        if self._particle_hook is not None:
-            self._particle_hook.apply_grad(s, s, s, dt)
+            raise ValueError(f"attach {what} before the first step (kernels are specialised on them)")
 
     # ------------------------------------------------------------ the contract
     def state(self) -> dict[str, np.ndarray]:
         """Particle state at the current macro step: x (n,d), v (n,d), C (n,d,d), F (n,d,d)."""
         return {k: self._get(getattr(self, k), self._slot) for k in STATE_KEYS}
+
+    def max_speed(self) -> float:
+        """Largest velocity component [m/s] of any particle now (reads only v)."""
+        return float(np.abs(self._get(self.v, self._slot)).max())
 
     def set_state(self, state: dict[str, np.ndarray]) -> None:
         """Restore a state from ``state()``; the next step starts from it bit for bit."""
@@ -437,31 +104,51 @@ class MPMEngine:
         self._slot = 0
         self._resident = -1
 
-    def set_params(self, E: np.ndarray | None = None, nu: np.ndarray | None = None) -> None:
-        """Per-body Young's moduli [Pa] and Poisson's ratios (differentiable inputs)."""
-        if E is not None:
-            self.E.from_numpy(self._real(E))
-        if nu is not None:
-            self.nu.from_numpy(self._real(nu))
+    def parameters(self) -> list:
+        """x0, v0 (initial state), E, nu per body (material) and, with controls, the impulses (input)."""
+        from cosim.engines.contract import Parameter
+
+        E = float(self.E.to_numpy().max())
+        out = [
+            Parameter("x0", self.name, "state", "x", self.dx),
+            Parameter("v0", self.name, "state", "v", 1.0),
+            Parameter("E", self.name, "material", "E", E),
+            Parameter("nu", self.name, "material", "nu", 0.1),
+        ]
+        if self.control is not None:
+            out.append(Parameter("impulse", self.name, "input", "impulse", 0.1 * float(self.mass.max())))
+        return out
+
+    def set_parameters(self, values: dict[str, np.ndarray]) -> None:
+        """Per-body Young's moduli ``E`` [Pa] and Poisson's ratios ``nu`` (differentiable inputs)."""
+        for key in ("E", "nu"):
+            if key in values:
+                getattr(self, key).from_numpy(self._real(values[key]))
         self._resident = -1
 
-    def params(self) -> dict[str, np.ndarray]:
+    def material(self) -> dict[str, np.ndarray]:
+        """The current per-body E and nu."""
         return {"E": self.E.to_numpy().astype(np.float64), "nu": self.nu.to_numpy().astype(np.float64)}
 
-    def _set_control(self, impulse: np.ndarray | None) -> None:
-        if self.control is None:
-            if impulse is not None and np.any(impulse):
-                raise ValueError("this engine was built without controls")
-            return
-        full = np.zeros((self.n_particles, self.dim)) if impulse is None else impulse
-        self.control.from_numpy(self._real(full))
+    def step(self, inputs: dict) -> tuple[dict, MPMRecord]:
+        """One macro step: ``inputs`` dt [s], substeps, impulse (N, d) [N s] or None (spread evenly over
+        the substeps in P2G), boundaries {source: BoundaryStates} for every attached source.
+        Returns ({state, reactions {source: Reactions}}, record)."""
+        dt, K = float(inputs["dt"]), int(inputs["substeps"])
+        boundaries = inputs.get("boundaries") or {}
+        missing = sorted(set(self.boundaries) - set(boundaries))
+        if missing:
+            raise ValueError(f"MPM step: no boundary states for sources {missing}")
+        record = MPMRecord(self.state(), dt, K, inputs.get("impulse"), boundaries)
+        for name, source in self.boundaries.items():
+            source.write(boundaries[name])
+        record.token = self.advance(dt, K, record.impulse)
+        reactions = {name: source.reactions(K) for name, source in self.boundaries.items()}
+        return {"state": self.state(), "reactions": reactions}, record
 
-    def step(self, dt: float, substeps: int, impulse: np.ndarray | None = None) -> StepInfo:
-        """Advance one macro step of ``substeps`` substeps of ``dt`` seconds.
-
-        ``impulse`` (n, d) [N s]: the control impulse each particle receives over
-        the whole macro step, spread evenly over its substeps (in P2G).
-        """
+    def advance(self, dt: float, substeps: int, impulse: np.ndarray | None = None) -> int:
+        """``substeps`` substeps of ``dt`` seconds with the boundaries as written; returns the step's token.
+        The bare stepping under ``step`` (benchmarks use it to time the kernels alone)."""
         self._set_control(impulse)
         share = 1.0 / substeps
         if self.cfg.requires_grad:
@@ -478,49 +165,64 @@ class MPMEngine:
                 self._slot = 1 - self._slot
         self._token += 1
         self._resident = self._token if self.cfg.requires_grad else -1
-        return StepInfo(substeps=substeps, dt=dt, token=self._token)
+        return self._token
 
-    def vjp(self, record: dict, grad_state: dict[str, np.ndarray]) -> dict:
-        """Vector-Jacobian product of one macro step.
+    def vjp(self, record: MPMRecord, grad_outputs: dict) -> dict:
+        """Vector-Jacobian product of one recorded macro step.
 
-        ``record``: {'state': state before the step, 'impulse', 'dt', 'substeps',
-        'token'}. ``grad_state``: dL/d(state after) for keys of ``STATE_KEYS``.
-        Returns dL/d(state before), dL/d(impulse) and this step's share of
-        dL/dE and dL/dnu per body. Substeps are recomputed from the record
-        unless they are still resident from the forward pass.
+        ``grad_outputs``: "state" dL/d(state after) (keys of ``STATE_KEYS``) and "reactions"
+        {source: dL/d(Reactions)} (missing sources: zero). Returns dL/d(state before) under
+        "state", "boundaries" {source: dL/d(BoundaryStates)}, this step's share of dL/dE and
+        dL/dnu per body, and "impulse" dL/d(impulse) with controls.
         """
         if not self.cfg.requires_grad:
-            raise RuntimeError("this engine was built without gradients (requires_grad=False)")
-        K, dt = record["substeps"], record["dt"]
+            raise NotImplementedError("MPMEngine.vjp: this engine was built without gradients (requires_grad=False)")
+        K, dt = record.substeps, record.dt
         share = 1.0 / K
-        self._set_control(record.get("impulse"))
-        if record.get("token") != self._resident:
-            self.set_state(record["state"])
+        self._set_control(record.impulse)
+        for name, source in self.boundaries.items():  # the step's boundary, for its backward (and recompute)
+            source.write(record.boundaries[name])
+        if record.token != self._resident:
+            self.set_state(record.state)
             for s in range(K):
                 self._substep(s, s + 1, dt, share, s)
             self._slot = K
-        for fld in (self.x, self.v, self.C, self.F, self.grid_mom, self.grid_m, self.grid_v, self.affine):
-            fld.grad.fill(0)
-        for hook in (self._hook, self._particle_hook):
-            if hook is not None:
-                hook.zero_grad()
-        self.E.grad.fill(0)
-        self.nu.grad.fill(0)
-        if self.control is not None:
-            self.control.grad.fill(0)
+        self._zero_grad()
+        reaction_grads = grad_outputs.get("reactions") or {}
+        for name, source in self.boundaries.items():
+            if name in reaction_grads:
+                source.seed_reaction_grads(reaction_grads[name])
         for k in STATE_KEYS:
-            self._put(getattr(self, k).grad, K, grad_state[k])
+            self._put(getattr(self, k).grad, K, grad_outputs["state"][k])
         for s in reversed(range(K)):
             self._substep_grad(s, dt, share)
-        self._resident = -1  # the backward recompute overwrote nothing, but be safe
+        self._resident = -1
         out = {
             "state": {k: self._get(getattr(self, k).grad, 0) for k in STATE_KEYS},
+            "boundaries": {name: source.state_grads(K) for name, source in self.boundaries.items()},
             "E": self.E.grad.to_numpy().astype(np.float64),
             "nu": self.nu.grad.to_numpy().astype(np.float64),
         }
         if self.control is not None:
             out["impulse"] = self.control.grad.to_numpy().astype(np.float64)
         return out
+
+    def _zero_grad(self) -> None:
+        fields = [self.x, self.v, self.C, self.F, self.grid_mom, self.grid_m, self.grid_v, self.affine, self.E, self.nu]
+        for fld in fields + ([self.control] if self.control is not None else []):
+            fld.grad.fill(0)
+        for hook in self.grid_hooks + self.particle_hooks:
+            hook.zero_grad()
+        for source in self.boundaries.values():
+            source.zero_grad()
+
+    def _set_control(self, impulse: np.ndarray | None) -> None:
+        if self.control is None:
+            if impulse is not None and np.any(impulse):
+                raise ValueError("this engine was built without controls")
+            return
+        full = np.zeros((self.n_particles, self.dim)) if impulse is None else impulse
+        self.control.from_numpy(self._real(full))
 
     # ------------------------------------------------------------ helpers
     def gradient_buffers_allocated(self) -> bool:
@@ -534,4 +236,7 @@ class MPMEngine:
         return {b.name: slice(lo, hi) for b, (lo, hi) in zip(self.bodies, self.ranges)}
 
     def lame(self, b: int) -> tuple[float, float]:
+        """Lame parameters (mu, lambda) [Pa] of body b from its scene E and nu."""
+        from cosim.engines.materials import lame_parameters
+
         return lame_parameters(self.bodies[b].E, self.bodies[b].nu, self.dim)

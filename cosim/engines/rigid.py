@@ -192,14 +192,14 @@ class RigidEngine:
 
     # ------------------------------------------------------------------------------------------- state
 
-    def state(self) -> np.ndarray:
+    def flat_state(self) -> np.ndarray:
         """All positions, then all velocities (see the module docstring)."""
         q = [s.getPositions() for s in self.skeletons]
         qd = [s.getVelocities() for s in self.skeletons]
         return np.concatenate(q + qd) if self.dofs else np.zeros(0)
 
-    def set_state(self, s: np.ndarray) -> None:
-        """Restore a ``state()``; stepping from it again is bitwise identical."""
+    def set_flat_state(self, s: np.ndarray) -> None:
+        """Restore a ``flat_state()``; stepping from it again is bitwise identical."""
         s = np.asarray(s, dtype=np.float64)
         if s.shape != (2 * self.dofs,):
             raise InputError(f"rigid state must have length {2 * self.dofs} (positions then velocities), got {s.shape}")
@@ -208,16 +208,51 @@ class RigidEngine:
             skel.setPositions(s[o[k] : o[k + 1]])
             skel.setVelocities(s[n + o[k] : n + o[k + 1]])
 
+
+    # ------------------------------------------------------------------------------------- the contract
+
+    name = "dart"
+
+    def state(self) -> dict[str, np.ndarray]:
+        """``q`` (dofs,) joint positions and ``qd`` (dofs,) joint velocities, skeletons in order."""
+        s = self.flat_state()
+        return {"q": s[: self.dofs], "qd": s[self.dofs :]}
+
+    def set_state(self, state: dict[str, np.ndarray]) -> None:
+        """Restore a ``state()``; stepping from it again is bitwise identical."""
+        self.set_flat_state(np.concatenate([state["q"], state["qd"]]))
+
+    def step(self, inputs: dict) -> tuple[dict, StepRecord]:
+        """One step of dt under ``inputs`` action (action_size,) (None: zeros) and forces: per-body
+        wrenches (len(body_names), 6) [torque; force] in the world frame, torque about the body
+        origin (None: zeros). Returns ({state}, record)."""
+        record = self.advance(inputs.get("action"), inputs.get("forces"))
+        n = self.dofs
+        return {"state": {"q": record.next_state[:n], "qd": record.next_state[n:]}}, record
+
+    def vjp(self, record: StepRecord, grad_outputs: dict) -> dict:
+        """{"state": dL/d(state after)} -> dL/d(state before), dL/d(action), dL/d(forces) (see ``vjp_flat``)."""
+        g = grad_outputs["state"]
+        grad_state, grad_action, grad_forces = self.vjp_flat(record, np.concatenate([g["q"], g["qd"]]))
+        n = self.dofs
+        return {"state": {"q": grad_state[:n], "qd": grad_state[n:]}, "action": grad_action, "forces": grad_forces}
+
+    def parameters(self) -> list:
+        """The action sequence, when any joint is controlled."""
+        from cosim.engines.contract import Parameter
+
+        return [Parameter("action", self.name, "input", "action", 1e-3)] if self.action_size else []
+
     # -------------------------------------------------------------------------------------------- step
 
-    def step(self, action: np.ndarray | None = None, wrenches: np.ndarray | None = None) -> StepRecord:
+    def advance(self, action: np.ndarray | None = None, wrenches: np.ndarray | None = None) -> StepRecord:
         """Advance one dt under the action and per-body world wrenches; NaN -> SimulationError."""
         action, wrenches = self._check_inputs(action, wrenches)
-        before = self.state()
+        before = self.flat_state()
         self._apply(action, wrenches)
         self.world.step()
         self.steps += 1
-        after = self.state()
+        after = self.flat_state()
         self._check_finite(after)
         return StepRecord(before, action, wrenches, after)
 
@@ -271,10 +306,10 @@ class RigidEngine:
 
     def _advance(self, state: np.ndarray, action: np.ndarray, wrenches: np.ndarray) -> np.ndarray:
         """DART's step from a given state, without bookkeeping (for finite differences)."""
-        self.set_state(state)
+        self.set_flat_state(state)
         self._apply(action, wrenches)
         self.world.step()
-        return self.state()
+        return self.flat_state()
 
     def _check_finite(self, s: np.ndarray) -> None:
         n, o = self.dofs, self._offsets
@@ -287,7 +322,7 @@ class RigidEngine:
 
     # --------------------------------------------------------------------------------------------- vjp
 
-    def vjp(self, record: StepRecord, grad_next_state: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def vjp_flat(self, record: StepRecord, grad_next_state: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(grad_state, grad_action, grad_wrenches) of one step for the adjoint ``grad_next_state``.
 
         Action and wrench blocks: closed form from DART's M, damping D and Jacobians at the step's start.
@@ -303,8 +338,8 @@ class RigidEngine:
         g = np.asarray(grad_next_state, dtype=np.float64)
         if g.shape != (2 * self.dofs,):
             raise InputError(f"grad_next_state must have length {2 * self.dofs}, got {g.shape}")
-        current = self.state()
-        self.set_state(record.state)
+        current = self.flat_state()
+        self.set_flat_state(record.state)
         grad_v = self._velocity_adjoint(g, record.next_state)
         grad_tau, grad_cmd = self._force_adjoints(grad_v)
         grad_action = self._action_adjoint(grad_tau, grad_cmd)
@@ -314,7 +349,7 @@ class RigidEngine:
             else np.zeros((0, 6))
         )
         grad_state = self._state_vjp_fd(record, g)
-        self.set_state(current)
+        self.set_flat_state(current)
         return grad_state, grad_action, grad_wrenches
 
     def _velocity_adjoint(self, g: np.ndarray, next_state: np.ndarray) -> np.ndarray:
@@ -402,9 +437,9 @@ class RigidEngine:
             np.zeros(shape) if g is None else np.asarray(g, dtype=np.float64).reshape(shape)
             for g, shape in ((grad_pos, (nb, 3)), (grad_R, (nb, 3, 3)), (grad_v, (nb, 3)), (grad_w, (nb, 3)))
         ]
-        current = self.state()
+        current = self.flat_state()
         s = current if state is None else np.asarray(state, dtype=np.float64)
-        self.set_state(s)
+        self.set_flat_state(s)
         n = self.dofs
         out = np.zeros(2 * n)
         for i, (k, body) in enumerate(self._bodies):
@@ -414,11 +449,11 @@ class RigidEngine:
             e = np.zeros(2 * n)
             e[i] = FD_EPS
             out[i] = (self._body_state_dot(s + e, grads) - self._body_state_dot(s - e, grads)) / (2 * FD_EPS)
-        self.set_state(current)
+        self.set_flat_state(current)
         return out
 
     def _body_state_dot(self, s: np.ndarray, grads: list[np.ndarray]) -> float:
-        self.set_state(s)
+        self.set_flat_state(s)
         b = self.body_states()
         keys = ("position", "rotation", "linear_velocity", "angular_velocity")
         return float(sum(np.sum(g * b[key]) for g, key in zip(grads, keys)))

@@ -1,0 +1,152 @@
+"""Boundary sources: what the MPM contact models see of a manipulator.
+
+A boundary source holds, for each of its ``n`` bodies and each substep s of the
+current macro step, what a contact model needs at a point x (world frame):
+
+    @ti.func distance(s, b, x)          signed distance [m], negative inside
+    @ti.func distance_normal(s, b, x)   (distance, outward unit normal in the world)
+    @ti.func contact_velocity(s, b, x)  velocity [m/s] of the body's surface point at x
+    @ti.func add_reaction(s, b, x, dp)  the contact gave the material momentum dp [N s] at x
+
+and on the host, the MPM engine's side of the contract (``cosim.engines.contract``):
+``write(states)`` (BoundaryStates of substeps 0..K-1; clears their reactions),
+``reactions(K)``, ``zero_grad()``, ``seed_reaction_grads(grads)`` and
+``state_grads(K)``. The contact models (``cosim.couplers.contact``) are written once
+against this interface and take any number of sources; rigid SDF bodies are one
+source (``RigidBoundaries``), the cloth's traced distance will be another.
+"""
+
+import numpy as np
+import taichi as ti
+
+from cosim.engines.contract import BOUNDARY_KEYS, REACTION_KEYS
+from cosim.couplers.sdf import SDFField, SDFGrid
+
+
+@ti.data_oriented
+class RigidBoundaries:
+    """Rigid bodies described by body-frame SDFs, moving with per-substep poses and twists.
+
+    Body b at substep s: origin ``pos[s, b]``, rotation ``rot[s, b]`` (body to world),
+    origin velocity ``vel[s, b]``, angular velocity ``omega[s, b]`` (world frame, one
+    component in 2D). The reaction on body b: ``impulse[s, b]`` [N s] = minus the
+    momentum the contact gave the material, ``angular_impulse[s, b]`` [N m s] its
+    moment about ``pos[s, b]``.
+    """
+
+    def __init__(self, sdfs: list[SDFGrid], dim: int, max_substeps: int, requires_grad: bool = False):
+        self.dim = dim
+        self.n = len(sdfs)
+        self.wdim = 1 if dim == 2 else 3
+        self.sdfs = [SDFField(g) for g in sdfs]
+        shape = (max_substeps, self.n)
+        grad = requires_grad
+        self.pos = ti.Vector.field(dim, float, shape=shape, needs_grad=grad)
+        self.rot = ti.Matrix.field(dim, dim, float, shape=shape, needs_grad=grad)
+        self.vel = ti.Vector.field(dim, float, shape=shape, needs_grad=grad)
+        self.omega = ti.Vector.field(self.wdim, float, shape=shape, needs_grad=grad)
+        self.impulse = ti.Vector.field(dim, float, shape=shape, needs_grad=grad)
+        self.angular_impulse = ti.Vector.field(self.wdim, float, shape=shape, needs_grad=grad)
+        self.real = np.float64 if self.pos.dtype == ti.f64 else np.float32
+
+    # ------------------------------------------------------------------ what a contact model asks
+    @ti.func
+    def distance(self, s, b: ti.template(), x):
+        return self.sdfs[b].distance(self.rot[s, b].transpose() @ (x - self.pos[s, b]))
+
+    @ti.func
+    def distance_normal(self, s, b: ti.template(), x):
+        R = self.rot[s, b]
+        d, n_body = self.sdfs[b].distance_normal(R.transpose() @ (x - self.pos[s, b]))
+        return d, R @ n_body
+
+    @ti.func
+    def contact_velocity(self, s, b: ti.template(), x):
+        return self.vel[s, b] + self.spin(self.omega[s, b], x - self.pos[s, b])
+
+    @ti.func
+    def add_reaction(self, s, b: ti.template(), x, dp):
+        self.impulse[s, b] -= dp
+        self.angular_impulse[s, b] -= self.moment(x - self.pos[s, b], dp)
+
+    @ti.func
+    def spin(self, w, r):
+        """omega x r in the world frame (2D: w has one component)."""
+        out = ti.Vector.zero(float, self.dim)
+        if ti.static(self.dim == 2):
+            out = w[0] * ti.Vector([-r[1], r[0]])
+        else:
+            out = w.cross(r)
+        return out
+
+    @ti.func
+    def moment(self, r, f):
+        """r x f, as a 1-vector in 2D."""
+        out = ti.Vector.zero(float, self.wdim)
+        if ti.static(self.dim == 2):
+            out[0] = r[0] * f[1] - r[1] * f[0]
+        else:
+            out = r.cross(f)
+        return out
+
+    # ------------------------------------------------------------------ the MPM engine's side
+    def write(self, states: dict[str, np.ndarray]) -> None:
+        """Body states of substeps 0..K-1 (BoundaryStates, ``cosim.engines.contract``); clears their reactions.
+        Only the K slots are written (the fields hold max_substeps)."""
+        arrays = [np.ascontiguousarray(states[k], dtype=self.real) for k in BOUNDARY_KEYS]
+        self._write_states(*arrays, len(arrays[0]))
+
+    @ti.kernel
+    def _write_states(
+        self,
+        pos: ti.types.ndarray(),
+        rot: ti.types.ndarray(),
+        vel: ti.types.ndarray(),
+        omega: ti.types.ndarray(),
+        K: ti.i32,
+    ):
+        for s, b in ti.ndrange(K, self.n):
+            for i in ti.static(range(self.dim)):
+                self.pos[s, b][i] = pos[s, b, i]
+                self.vel[s, b][i] = vel[s, b, i]
+                self.impulse[s, b][i] = 0.0
+                for j in ti.static(range(self.dim)):
+                    self.rot[s, b][i, j] = rot[s, b, i, j]
+            for i in ti.static(range(self.wdim)):
+                self.omega[s, b][i] = omega[s, b, i]
+                self.angular_impulse[s, b][i] = 0.0
+
+    @ti.kernel
+    def _read_reactions(self, impulse: ti.types.ndarray(), angular: ti.types.ndarray(), K: ti.i32):
+        for s, b in ti.ndrange(K, self.n):
+            for i in ti.static(range(self.dim)):
+                impulse[s, b, i] = self.impulse[s, b][i]
+            for i in ti.static(range(self.wdim)):
+                angular[s, b, i] = self.angular_impulse[s, b][i]
+
+    def reactions(self, K: int) -> dict[str, np.ndarray]:
+        """Reactions of substeps 0..K-1: impulse (K, n, d) [N s], angular_impulse (K, n, 1|3) about pos."""
+        impulse = np.zeros((K, self.n, self.dim), dtype=self.real)
+        angular = np.zeros((K, self.n, self.wdim), dtype=self.real)
+        self._read_reactions(impulse, angular, K)
+        return {"impulse": impulse.astype(np.float64), "angular_impulse": angular.astype(np.float64)}
+
+    def zero_grad(self) -> None:
+        for fld in (self.pos, self.rot, self.vel, self.omega, self.impulse, self.angular_impulse):
+            fld.grad.fill(0)
+
+    def seed_reaction_grads(self, grads: dict[str, np.ndarray]) -> None:
+        """dL/d(reactions) of substeps 0..K-1 (Reactions layout), after ``zero_grad``."""
+        for key in REACTION_KEYS:
+            fld, values = getattr(self, key), grads[key]
+            full = np.zeros(fld.shape + (values.shape[-1],), dtype=self.real)
+            full[: len(values)] = values
+            fld.grad.from_numpy(full)
+
+    def state_grads(self, K: int) -> dict[str, np.ndarray]:
+        """dL/d(body states) of substeps 0..K-1 (BoundaryStates layout) after a vjp."""
+        return {k: getattr(self, k).grad.to_numpy()[:K].astype(np.float64) for k in BOUNDARY_KEYS}
+
+    def zero_reactions(self, K: int) -> dict[str, np.ndarray]:
+        """Reactions-shaped zeros of K substeps."""
+        return {"impulse": np.zeros((K, self.n, self.dim)), "angular_impulse": np.zeros((K, self.n, self.wdim))}

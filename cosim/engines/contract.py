@@ -1,0 +1,147 @@
+"""The engine and coupler contracts: what crosses between engines, in which frame and unit.
+
+Every engine adapter (``cosim/engines``) and every coupler (``cosim/couplers``) conforms
+to one of the protocols below, and the coupled loop (``cosim.system``) knows them only
+through these methods, never by type. Units are SI throughout: [m], [s], [kg], [N],
+[N s] (impulse), [N m] (torque), [rad]. World frame: y is up (2D: the xy-plane).
+
+Engines
+-------
+An engine holds its state between macro steps. ``state()`` returns it as a dict of
+named NumPy arrays (float64) and ``set_state(s)`` restores it so that the next step is
+bit for bit the same; ``step(inputs) -> (outputs, record)`` advances one macro step
+(the frame ``frame_dt``) and ``vjp(record, grad_outputs) -> grad_inputs`` is the
+vector-Jacobian product of that recorded step with respect to its state and every
+input. Nothing is passed any other way: no hidden seeds, no call-order conventions.
+``parameters()`` declares the engine's differentiable parameters (``Parameter``); a
+hook an engine cannot honour raises ``NotImplementedError`` naming it.
+
+The soft-body engine (MPM, ``cosim.engines.mpm.MPMEngine``, name ``"mpm"``):
+    state     x (N, d) [m], v (N, d) [m/s], C (N, d, d) [1/s] APIC affine velocity,
+              F (N, d, d) deformation gradient; particles in body order.
+    inputs    dt [s] substep, substeps K, impulse (N, d) [N s] per particle over the
+              macro step (controls) or None, boundaries {source: BoundaryStates}.
+    outputs   state (after the step), reactions {source: Reactions}.
+    vjp       grad_outputs {state, reactions} -> {state, impulse, boundaries, E, nu}:
+              the reaction adjoints are an argument, the boundary adjoints a result.
+
+A manipulator engine (DART ``RigidEngine`` "dart", ``KinematicEngine`` "kinematic", later cloth):
+    inputs    action (A,) (layout per engine; None: zeros), forces (engine-specific
+              external forces, e.g. DART: (bodies, 6) wrenches [torque; force] in the
+              world frame, torque about the body origin [N m; N]).
+    outputs   state (after the step).
+    vjp       {state} -> {state, action, forces}.
+
+Boundary states and reactions (the MPM's side of a coupling)
+--------------------------------------------------------------
+A boundary source (``cosim.couplers.boundary``) is what the contact models see of a
+manipulator: for a point x at substep s it answers the signed distance (negative
+inside), the outward normal and the contact-point velocity, and it takes back the
+reaction. Per-substep states of its m bodies, substeps k = 0..K-1 of the step:
+
+    BoundaryStates  pos (K, m, d) [m] body origin, rot (K, m, d, d) body to world,
+                    vel (K, m, d) [m/s] origin velocity, omega (K, m, 1|3) [rad/s]
+                    world-frame angular velocity; a body point moves with
+                    v_c = vel + omega x (x - pos).
+    Reactions       impulse (K, m, d) [N s] = minus the momentum the contact gave the
+                    material in substep k; angular_impulse (K, m, 1|3) [N m s] its
+                    moment about pos[k].
+
+Couplers
+--------
+A coupler joins one manipulator engine (``engine``) to the MPM through one boundary
+source (``source``). Forward, per macro step: ``boundary(dt, K)`` turns the engine's
+current state into BoundaryStates for the K substeps; after the MPM step,
+``forces(record, reactions)`` turns that source's reactions into the engine's external
+forces. Reverse: ``forces_vjp(record, grad_forces) -> (grad_reactions, carry)`` before
+the MPM's vjp, ``boundary_vjp(record, grad_boundary, carry) -> grad_engine_state`` after
+it (``carry``: what the force path contributes to the engine state, e.g. torque arms).
+
+The loop (``cosim.system.CoupledSystem``), as in the paper's chain rule::
+
+    for c in couplers:   boundaries[c.source] = c.boundary(dt, K)
+    s_M', reactions    = mpm.step(s_M, boundaries, impulse)
+    for c in couplers:   forces[c.engine] += c.forces(reactions[c.source])
+    for e in engines:    s_e' = e.step(s_e, action_e, forces[e])
+
+    reverse: each engine's vjp -> dL/ds_e, dL/da_e, dL/dF_e; each coupler's forces_vjp
+    -> reaction adjoints; one MPM vjp with all of them -> dL/ds_M and boundary adjoints;
+    each coupler's boundary_vjp -> added to dL/ds_e.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+
+State = dict[str, np.ndarray]
+BoundaryStates = dict[str, np.ndarray]  # pos, rot, vel, omega: (K, m, ...)
+Reactions = dict[str, np.ndarray]  # impulse, angular_impulse: (K, m, ...)
+BOUNDARY_KEYS = ("pos", "rot", "vel", "omega")
+REACTION_KEYS = ("impulse", "angular_impulse")
+
+
+@dataclass(frozen=True)
+class Parameter:
+    """A differentiable parameter an engine declares.
+
+    ``kind``: "state" (an initial-state array, ``key`` its state key), "material" (an
+    engine parameter set with ``set_parameters``, ``key`` its name) or "input" (a
+    per-macro-step input, ``key`` its input name: impulse, action). ``scale``: its
+    natural size (finite-difference and optimiser steps are fractions of it).
+    """
+
+    name: str
+    engine: str
+    kind: str
+    key: str
+    scale: float
+
+
+@runtime_checkable
+class Engine(Protocol):
+    """One engine adapter (see the module docstring for inputs and outputs)."""
+
+    name: str
+
+    def state(self) -> State: ...
+
+    def set_state(self, state: State) -> None: ...
+
+    def step(self, inputs: dict[str, Any]) -> tuple[dict[str, Any], Any]: ...
+
+    def vjp(self, record: Any, grad_outputs: dict[str, Any]) -> dict[str, Any]: ...
+
+    def parameters(self) -> list[Parameter]: ...
+
+
+@runtime_checkable
+class Coupler(Protocol):
+    """Joins the manipulator engine ``engine`` to the MPM through boundary source ``source``."""
+
+    name: str
+    engine: str
+    source: str
+
+    def boundary(self, dt: float, substeps: int) -> tuple[BoundaryStates, Any]: ...
+
+    def forces(self, record: Any, reactions: Reactions) -> Any: ...
+
+    def forces_vjp(self, record: Any, grad_forces: Any) -> tuple[Reactions, Any]: ...
+
+    def boundary_vjp(self, record: Any, grad_boundary: BoundaryStates, carry: Any) -> State: ...
+
+
+def add_states(a: State | None, b: State | None) -> State | None:
+    """Sum of two state-shaped gradients (None is zero)."""
+    if a is None:
+        return b
+    if b is None:
+        return a
+    return {k: a[k] + b[k] for k in a}
+
+
+def zeros_like_state(state: State) -> State:
+    return {k: np.zeros_like(v) for k, v in state.items()}

@@ -1,0 +1,342 @@
+"""The coupled system: the MPM and any number of manipulator engines joined by couplers.
+
+``CoupledSystem`` runs the paper's loop over engines and couplers it knows only
+through their contracts (``cosim.engines.contract``)::
+
+    for c in couplers:   boundaries[c.source] = c.boundary(dt, K)
+    s_M', reactions    = mpm.step(s_M, boundaries, impulse)
+    for c in couplers:   forces[c.engine] += c.forces(reactions[c.source])
+    for e in engines:    s_e' = e.step(s_e, action_e, forces[e])
+
+and its reverse (``vjp``). It picks the substep count K from the CFL bound (or checks a
+fixed one) and stops with a ``SimulationError`` naming the step, the body and the
+quantity as soon as a step produces NaN/inf, violates the CFL bound or leaves the grid.
+``rollout`` is the one loop behind ``cosim run``, the objective, gradcheck, optimize and
+the benchmarks. Scenes assemble a system with ``cosim.scene.build_system``.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+
+from cosim.engines.contract import add_states
+from cosim.errors import SimulationError
+
+RETRIES = 4  # auto substeps: how often a step is redone with twice the substeps
+
+
+@dataclass
+class Stepping:
+    """Time stepping: frame [s], CFL bound, substep limits; ``fixed`` 0 means auto substeps."""
+
+    frame_dt: float
+    cfl: float
+    max_substeps: int
+    fixed: int
+    grad_substeps: int
+    requires_grad: bool
+    wave_speed: float  # [m/s] fastest elastic wave of the scene's bodies
+
+
+@dataclass
+class Control:
+    """Particles driven by impulses: ``indices`` into the engine's particles."""
+
+    body: str
+    indices: np.ndarray
+    initial: np.ndarray  # (d,) [N s] per particle per macro step
+
+
+@dataclass
+class ActionPlan:
+    """A manipulator engine's action sequence: ``sequence`` (segments, action size), each held ``hold`` steps."""
+
+    sequence: np.ndarray
+    hold: int
+
+    def segment(self, n: int, segments: int) -> int:
+        """Which of ``segments`` held actions macro step n uses (the last one after the sequence)."""
+        return min(n // self.hold, segments - 1)
+
+
+@dataclass
+class StepRecord:
+    """One macro step on the tape: one record per engine and coupler, keyed by name."""
+
+    time: float  # [s] at the start of the step
+    mpm: Any
+    engines: dict[str, Any]
+    couplers: dict[str, Any]
+    outputs: dict[str, Any] = field(default_factory=dict)  # non-differentiable per-step data (reactions)
+
+    @property
+    def substeps(self) -> int:
+        return self.mpm.substeps
+
+    @property
+    def dt(self) -> float:
+        return self.mpm.dt
+
+    @property
+    def nbytes(self) -> int:
+        return self.mpm.nbytes
+
+
+class CoupledSystem:
+    """The MPM, the manipulator engines (in stepping order) and their couplers."""
+
+    def __init__(
+        self,
+        mpm,
+        engines: list,
+        couplers: list,
+        stepping: Stepping,
+        gravity,
+        domain: np.ndarray,
+        steps: int,
+        controls: list[Control] | None = None,
+        plans: dict[str, ActionPlan] | None = None,
+    ):
+        self.mpm = mpm
+        self.engines = {e.name: e for e in engines}
+        self.couplers = list(couplers)
+        self.stepping = stepping
+        self.gravity = np.asarray(gravity, dtype=np.float64)
+        self.domain = np.asarray(domain, dtype=np.float64)  # [m] upper corner of the grid
+        self.steps = steps
+        self.controls = list(controls or [])
+        self.plans = dict(plans or {})
+        self.slices = mpm.body_slices()
+        self.frame_dt = stepping.frame_dt
+        self.dx = mpm.dx
+        self.grad_substeps = stepping.grad_substeps
+        self.ctrl_index = (
+            np.concatenate([c.indices for c in self.controls]) if self.controls else np.zeros(0, dtype=int)
+        )
+        self.step_index = 0
+        self.max_cfl = 0.0
+        self.last = None  # the record of the last step
+        self.timings: dict[str, float] | None = None  # seconds per part when a benchmark sets a dict
+        self.scene = None  # the scene it was built from (set by the builder; losses and reports read it)
+        self.rigid = None  # cosim.couplers.rigid_view.RigidBodies of a scene with rigid bodies
+        self.initial = self.state()
+
+    # ------------------------------------------------------------ state of every engine
+    def state(self) -> dict[str, dict[str, np.ndarray]]:
+        """{engine name: its state}, the MPM under "mpm"."""
+        return {"mpm": self.mpm.state(), **{name: e.state() for name, e in self.engines.items()}}
+
+    def set_state(self, state: dict[str, dict[str, np.ndarray]], step_index: int = 0) -> None:
+        self.mpm.set_state(state["mpm"])
+        for name, e in self.engines.items():
+            e.set_state(state[name])
+        self.step_index = step_index
+
+    def reset(self) -> None:
+        """Back to the initial state of every engine."""
+        self.set_state(self.initial)
+        self.max_cfl = 0.0
+
+    # ------------------------------------------------------------ inputs
+    def default_impulses(self) -> np.ndarray | None:
+        """(steps, controlled particles, d) [N s]: the scene's control impulses, controls concatenated."""
+        if not self.controls:
+            return None
+        per_control = [np.broadcast_to(c.initial, (self.steps, len(c.indices), len(c.initial))) for c in self.controls]
+        return np.concatenate(per_control, axis=1).copy()
+
+    def impulse_field(self, impulse: np.ndarray | None) -> np.ndarray | None:
+        """Per-particle impulses (N, d) of one macro step from the controlled particles' (n_ctrl, d)."""
+        if impulse is None:
+            return None
+        full = np.zeros((self.mpm.n_particles, self.mpm.dim))
+        np.add.at(full, self.ctrl_index, impulse)
+        return full
+
+    def default_actions(self) -> dict[str, np.ndarray]:
+        """{engine: (segments, action size)}: the scene's action sequences."""
+        return {name: plan.sequence.copy() for name, plan in self.plans.items()}
+
+    def action(self, name: str, n: int, actions: dict[str, np.ndarray] | None = None) -> np.ndarray | None:
+        """Engine ``name``'s action in macro step n (default: the scene's sequence)."""
+        plan = self.plans.get(name)
+        if plan is None:
+            return None
+        seq = plan.sequence if actions is None or name not in actions else actions[name]
+        return seq[plan.segment(n, len(seq))]
+
+    # ------------------------------------------------------------ forward
+    def step(self, impulse: np.ndarray | None = None, actions: dict[str, np.ndarray] | None = None) -> StepRecord:
+        """One macro step with checks: couplers' boundaries, the MPM's K substeps, couplers' forces,
+        every engine's step. ``impulse`` (N, d) [N s]; ``actions`` {engine: this step's action}
+        (default: the scene's sequences)."""
+        st = self.stepping
+        t0 = self.step_index * self.frame_dt
+        speed = self.mpm.max_speed() + float(np.linalg.norm(self.gravity)) * self.frame_dt
+        fixed = st.fixed or (st.grad_substeps if st.requires_grad else 0)
+        K = fixed or self.auto_substeps(speed)
+        for attempt in range(RETRIES + 1):
+            if K > st.max_substeps:
+                raise SimulationError(
+                    f"step {self.step_index}: the CFL bound needs {K} substeps, more than time.max_substeps = "
+                    f"{st.max_substeps} (max speed {speed:.3g} m/s): the simulation is blowing up or "
+                    "frame_dt is too long"
+                )
+            dt = self.frame_dt / K
+            boundaries, coupler_records = {}, {}
+            with self._timed("couplers"):
+                for c in self.couplers:
+                    boundaries[c.source], coupler_records[c.name] = c.boundary(dt, K)
+            with self._timed("mpm"):
+                outputs, mpm_record = self.mpm.step(
+                    {"dt": dt, "substeps": K, "impulse": impulse, "boundaries": boundaries}
+                )
+            after = outputs["state"]
+            self._check_finite(after)
+            cfl, body = self._cfl(after, dt)
+            if cfl <= st.cfl:
+                break
+            if fixed or attempt == RETRIES:
+                if st.fixed:
+                    fix = "raise time.substeps or set it to 'auto'"
+                elif fixed:
+                    fix = f"gradient runs fix the substeps at the start ({K} here); set time.substeps higher"
+                else:
+                    fix = "the motion is too violent for time.max_substeps"
+                raise SimulationError(
+                    f"step {self.step_index}: CFL number {cfl:.3f} > {st.cfl} in body '{body}' "
+                    f"(max |v| dt / dx with dt = {dt:.3g} s); {fix}"
+                )
+            self.mpm.set_state(mpm_record.state)
+            K *= 2
+        self._check_domain(after)
+        forces: dict[str, Any] = {}
+        with self._timed("couplers"):
+            for c in self.couplers:
+                f = c.forces(coupler_records[c.name], outputs["reactions"][c.source])
+                if f is not None:
+                    forces[c.engine] = f if forces.get(c.engine) is None else forces[c.engine] + f
+        engine_records = {}
+        for name, engine in self.engines.items():
+            act = actions[name] if actions is not None and name in actions else self.action(name, self.step_index)
+            with self._timed(name):
+                _, engine_records[name] = engine.step({"action": act, "forces": forces.get(name)})
+        self.max_cfl = max(self.max_cfl, cfl)
+        self.step_index += 1
+        self.last = StepRecord(t0, mpm_record, engine_records, coupler_records, {"reactions": outputs["reactions"]})
+        return self.last
+
+    def rollout(
+        self,
+        impulses: np.ndarray | None = None,
+        actions: dict[str, np.ndarray] | None = None,
+        tape=None,
+        on_step: Callable[[int], None] | None = None,
+    ) -> None:
+        """All macro steps from the current state: ``impulses`` (steps, n_ctrl, d) [N s] (default the
+        scene's), ``actions`` {engine: (segments, action size)} (default the scene's sequences).
+        ``tape`` (``cosim.adjoint.tape.Tape``) records every step; ``on_step(n)`` is called with the
+        state of macro step n in the engines (n = 0: the start)."""
+        impulses = self.default_impulses() if impulses is None else impulses
+        if on_step is not None:
+            on_step(0)
+        for n in range(self.steps):
+            imp = self.impulse_field(None if impulses is None else impulses[n])
+            step_actions = {name: self.action(name, n, actions) for name in self.plans}
+            record = self.step(imp, step_actions)
+            if tape is not None:
+                tape.push(record)
+            if on_step is not None:
+                on_step(n + 1)
+
+    # ------------------------------------------------------------ reverse
+    def vjp(self, record: StepRecord, grad: dict[str, dict[str, np.ndarray]]) -> dict:
+        """Vector-Jacobian product of one recorded macro step (the paper's backward equations).
+
+        ``grad``: dL/d(state after) per engine name. Each manipulator's vjp gives dL/ds_e (own
+        dynamics), dL/da_e and dL/dF_e; each coupler's ``forces_vjp`` turns dL/dF into reaction
+        adjoints; one MPM vjp, given them all, returns dL/ds_M (direct and force paths) and the
+        boundary adjoints; each coupler's ``boundary_vjp`` adds the boundary path to dL/ds_e.
+        Returns {"state": per engine, "action": per engine, "impulse", "material": {E, nu}}.
+        """
+        state_grads, action_grads, force_grads = {}, {}, {}
+        for name in reversed(list(self.engines)):
+            out = self.engines[name].vjp(record.engines[name], {"state": grad[name]})
+            state_grads[name], action_grads[name], force_grads[name] = out["state"], out["action"], out["forces"]
+        reaction_grads, carries = {}, {}
+        for c in self.couplers:
+            g_forces = force_grads.get(c.engine)
+            reaction_grads[c.source], carries[c.name] = c.forces_vjp(record.couplers[c.name], g_forces)
+        reaction_grads = {k: v for k, v in reaction_grads.items() if v is not None}
+        mpm = self.mpm.vjp(record.mpm, {"state": grad["mpm"], "reactions": reaction_grads})
+        for c in self.couplers:
+            g = c.boundary_vjp(record.couplers[c.name], mpm["boundaries"][c.source], carries[c.name])
+            state_grads[c.engine] = add_states(state_grads[c.engine], g)
+        return {
+            "state": {"mpm": mpm["state"], **state_grads},
+            "action": action_grads,
+            "impulse": mpm.get("impulse"),
+            "material": {"E": mpm["E"], "nu": mpm["nu"]},
+        }
+
+    # ------------------------------------------------------------ time stepping and checks
+    def auto_substeps(self, speed: float) -> int:
+        """Substeps so that (|v| + c) dt / dx <= cfl, c the fastest elastic wave."""
+        bound = self.stepping.cfl * self.dx / (speed + self.stepping.wave_speed)
+        return max(1, math.ceil(self.frame_dt / bound - 1e-9))
+
+    def _timed(self, key: str):
+        return _Stopwatch(self.timings, key)
+
+    def _per_body(self, values: np.ndarray):
+        for name, sl in self.slices.items():
+            yield name, values[sl]
+
+    def _check_finite(self, state: dict[str, np.ndarray]) -> None:
+        names = {"x": "position", "v": "velocity", "F": "deformation gradient", "C": "affine velocity"}
+        for key in ("v", "x", "F", "C"):
+            for body, vals in self._per_body(state[key]):
+                bad = ~np.isfinite(vals.reshape(len(vals), -1)).all(axis=1)
+                if bad.any():
+                    raise SimulationError(
+                        f"step {self.step_index}: body '{body}': non-finite {names[key]} ({key}) in "
+                        f"{int(bad.sum())} particles; the step is unstable: lower time.frame_dt, use more substeps "
+                        "or a smaller time.cfl, or check the material's E"
+                    )
+
+    def _cfl(self, state: dict[str, np.ndarray], dt: float) -> tuple[float, str]:
+        worst, name = 0.0, ""
+        for body, vals in self._per_body(state["v"]):
+            c = float(np.abs(vals).max()) * dt / self.dx
+            if c > worst:
+                worst, name = c, body
+        return worst, name
+
+    def _check_domain(self, state: dict[str, np.ndarray]) -> None:
+        for body, vals in self._per_body(state["x"]):
+            out = np.any((vals < self.dx) | (vals > self.domain - self.dx), axis=1)
+            if out.any():
+                raise SimulationError(
+                    f"step {self.step_index}: body '{body}': {int(out.sum())} particles left the grid domain "
+                    f"[0, {self.domain.tolist()}] m; enable walls (mpm.boundary.type) or enlarge mpm.grid"
+                )
+
+
+class _Stopwatch:
+    """Adds the wall time of a ``with`` block to ``timings[key]`` (nothing when timings is None)."""
+
+    def __init__(self, timings: dict[str, float] | None, key: str):
+        self.timings, self.key = timings, key
+
+    def __enter__(self):
+        if self.timings is not None:
+            self.t = time.perf_counter()
+
+    def __exit__(self, *exc):
+        if self.timings is not None:
+            self.timings[self.key] = self.timings.get(self.key, 0.0) + time.perf_counter() - self.t
