@@ -22,6 +22,7 @@ from pathlib import Path
 import dartpy as dart
 import numpy as np
 
+from cosim.engines import so3
 from cosim.errors import InputError
 
 SHAPE_KINDS = ("box", "sphere", "cylinder", "capsule", "mesh")
@@ -118,11 +119,7 @@ class SkeletonSpec:
 
 def euler_xyz_deg(rotation) -> np.ndarray:
     """R = Rz @ Ry @ Rx from fixed-axis xyz Euler angles in degrees."""
-    a, b, c = np.radians(np.asarray(rotation, dtype=np.float64))
-    rx = np.array([[1, 0, 0], [0, math.cos(a), -math.sin(a)], [0, math.sin(a), math.cos(a)]])
-    ry = np.array([[math.cos(b), 0, math.sin(b)], [0, 1, 0], [-math.sin(b), 0, math.cos(b)]])
-    rz = np.array([[math.cos(c), -math.sin(c), 0], [math.sin(c), math.cos(c), 0], [0, 0, 1]])
-    return rz @ ry @ rx
+    return so3.euler_xyz(np.radians(np.asarray(rotation, dtype=np.float64)))
 
 
 def make_transform(position, rotation) -> np.ndarray:
