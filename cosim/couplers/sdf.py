@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 import taichi as ti
 
+from cosim.engines.meshes import load_mesh, require_watertight
 from cosim.errors import SceneError
 
 SDF_VERSION = "2"  # bump when the computation changes: invalidates the cache
@@ -192,15 +193,12 @@ def _spec_half_extent(spec) -> np.ndarray:
 def shape_spec_sdf(geometry: list, spacing: float, padding: float, key: str) -> SDFGrid:
     """The body-frame SDF of a link's shapes [(ShapeSpec, 4x4 pose in the body frame)] (URDF
     collision geometry): one mesh, or the union (minimum) of primitives."""
-    import trimesh
-
     meshes = [(g, T) for g, T in geometry if g.kind == "mesh"]
     if meshes:
         if len(geometry) > 1:
             raise SceneError(f"{key}: a link with a mesh must have no other collision shapes (got {len(geometry)})")
         spec, T = meshes[0]
-        mesh = trimesh.load(spec.mesh, force="mesh")
-        mesh.apply_transform(np.diag([*np.broadcast_to(np.asarray(spec.scale, float), 3), 1.0]))
+        mesh = load_mesh(spec.mesh, spec.scale, key, SceneError)
         mesh.apply_transform(T)
         return mesh_sdf(mesh, spacing, padding, key=f"{key} ({Path(spec.mesh).name})")
     bounds = [placed_box_bounds(_spec_half_extent(g), T[:3, :3], T[:3, 3]) for g, T in geometry]
@@ -297,11 +295,13 @@ def mesh_sdf(mesh, spacing: float, padding: float, key: str = "mesh", use_cache:
     ``key`` names the mesh in error messages (the scene key or file).
     Needs Taichi initialised (any precision: the kernel computes in float64).
     """
-    if not mesh.is_watertight:
-        raise SceneError(
-            f"{key}: the mesh is not watertight, so inside and outside are undefined for its signed distance; "
-            "close its holes (e.g. trimesh.repair.fill_holes) or use a primitive"
-        )
+    require_watertight(
+        mesh,
+        f"{key}: the mesh",
+        "inside and outside are undefined for its signed distance",
+        "close its holes (e.g. trimesh.repair.fill_holes) or use a primitive",
+        SceneError,
+    )
     vertices, faces = np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64)
     digest = mesh_key(vertices, faces, spacing, padding)
     path = cache_dir() / f"{digest}.npz"
@@ -345,14 +345,8 @@ def _mesh_normals(grid: SDFGrid, points: np.ndarray, closest: np.ndarray, dist: 
 def shape_sdf(shape, dim: int, spacing: float, padding: float, source_dir: Path, key: str) -> SDFGrid:
     """The SDF of a validated scene ``RigidShape`` (primitive or mesh file)."""
     if shape.type == "mesh":
-        import trimesh
-
         path = (Path(source_dir) / shape.file).resolve()
-        try:
-            mesh = trimesh.load(path, force="mesh")
-        except Exception as exc:  # trimesh raises many kinds for unreadable files
-            raise SceneError(f"{key}.file: cannot read mesh {path}: {exc}") from None
-        mesh.apply_scale(shape.scale)
+        mesh = load_mesh(path, shape.scale, f"{key}.file", SceneError)
         return mesh_sdf(mesh, spacing, padding, key=f"{key}.file ({path.name})")
     return primitive_sdf(shape.type, dim, spacing, padding, **primitive_size(shape))
 

@@ -23,6 +23,7 @@ import dartpy as dart
 import numpy as np
 
 from cosim.engines import so3
+from cosim.engines.meshes import load_mesh, require_watertight
 from cosim.errors import InputError
 
 SHAPE_KINDS = ("box", "sphere", "cylinder", "capsule", "mesh")
@@ -139,20 +140,6 @@ def _isometry(T: np.ndarray) -> dart.math.Isometry3:
 # ---------------------------------------------------------------------------------------- mass properties
 
 
-def load_mesh(path: str, scale=(1.0, 1.0, 1.0)):
-    """The mesh at ``path`` as a trimesh, scaled per axis; InputError if it is missing or unreadable."""
-    import trimesh
-
-    if not Path(path).is_file():
-        raise InputError(f"mesh file not found: {path}; fix the path (relative paths are resolved against the URDF)")
-    try:
-        mesh = trimesh.load(path, force="mesh")
-    except Exception as exc:  # trimesh raises many types for bad files
-        raise InputError(f"cannot read mesh {path}: {exc}; export it as OBJ/STL") from exc
-    mesh.apply_transform(np.diag([*np.broadcast_to(np.asarray(scale, dtype=np.float64), 3), 1.0]))
-    return mesh
-
-
 def shape_mass_properties(shape: ShapeSpec, density: float) -> tuple[float, np.ndarray, np.ndarray]:
     """(mass, COM in the body frame, inertia about the COM in body axes) of a uniform shape."""
     volume, com, inertia_unit = _unit_density_properties(shape)
@@ -166,11 +153,12 @@ def _unit_density_properties(shape: ShapeSpec) -> tuple[float, np.ndarray, np.nd
     k = shape.kind
     if k == "mesh":
         mesh = load_mesh(shape.mesh, shape.scale)
-        if not mesh.is_watertight:
-            raise InputError(
-                f"mesh {shape.mesh} is not watertight, so its volume and inertia are undefined; "
-                "repair/close the mesh or give the link's mass and inertia explicitly"
-            )
+        require_watertight(
+            mesh,
+            f"mesh {shape.mesh}",
+            "its volume and inertia are undefined",
+            "repair/close the mesh or give the link's mass and inertia explicitly",
+        )
         return float(mesh.volume), np.asarray(mesh.center_mass), np.asarray(mesh.moment_inertia)
     if k == "box":
         a, b, c = shape.size
