@@ -29,6 +29,7 @@ import numpy as np
 import taichi as ti
 
 from cosim.engines.meshes import load_mesh, require_watertight
+from cosim.engines.shapes import CONTAINER_KINDS, PRIMITIVE_SIZES
 from cosim.errors import SceneError
 
 SDF_VERSION = "2"  # bump when the computation changes: invalidates the cache
@@ -174,20 +175,16 @@ _Z_TO_Y = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])  # (x, 
 
 def _spec_distance(spec, p: np.ndarray) -> np.ndarray:
     """Signed distance of a rigid-engine ShapeSpec at points in its own frame."""
-    if spec.kind == "box":
-        return primitive_distance("box", p, half=0.5 * np.asarray(spec.size, float))
-    if spec.kind == "sphere":
-        return primitive_distance("sphere", p, radius=spec.radius)
-    return primitive_distance(spec.kind, p @ _Z_TO_Y.T, radius=spec.radius, height=spec.height)
+    size = _size_keywords(spec.kind, spec)
+    if spec.kind in ("box", "sphere"):
+        return primitive_distance(spec.kind, p, **size)
+    return primitive_distance(spec.kind, p @ _Z_TO_Y.T, **size)
 
 
 def _spec_half_extent(spec) -> np.ndarray:
-    if spec.kind == "box":
-        return 0.5 * np.asarray(spec.size, float)
-    if spec.kind == "sphere":
-        return np.full(3, spec.radius)
-    cap = spec.radius if spec.kind == "capsule" else 0.0
-    return np.array([spec.radius, spec.radius, 0.5 * spec.height + cap])
+    """Half extent (3,) of a ShapeSpec's bounding box in its own frame (DART's axis is z)."""
+    ext = primitive_extent(spec.kind, 3, **_size_keywords(spec.kind, spec))
+    return ext if spec.kind in ("box", "sphere") else np.abs(_Z_TO_Y.T @ ext)
 
 
 def shape_spec_sdf(geometry: list, spacing: float, padding: float, key: str) -> SDFGrid:
@@ -353,13 +350,20 @@ def shape_sdf(shape, dim: int, spacing: float, padding: float, source_dir: Path,
 
 def primitive_size(shape) -> dict:
     """The size keywords of ``primitive_distance`` from a scene ``RigidShape``."""
-    if shape.type == "box":
+    return _size_keywords(shape.type, shape)
+
+
+def _size_keywords(kind: str, shape) -> dict:
+    """``primitive_distance``'s keywords from any object with the kind's size attributes
+    (``shapes.PRIMITIVE_SIZES``): a box's full ``size`` becomes the ``half`` extents [m]."""
+    if kind == "box":
         return {"half": 0.5 * np.asarray(shape.size, dtype=np.float64)}
-    return {k: getattr(shape, k) for k in ("radius", "height", "thickness") if getattr(shape, k) is not None}
+    return {k: getattr(shape, k) for k in PRIMITIVE_SIZES[kind] if getattr(shape, k) is not None}
 
 
 def is_container(shape) -> bool:
-    return shape.type in ("glass", "ring")
+    """Whether a scene ``RigidShape`` has a cavity that holds material (a glass, a ring)."""
+    return shape.type in CONTAINER_KINDS
 
 
 def in_cavity(shape, p: np.ndarray) -> np.ndarray:

@@ -24,9 +24,10 @@ import numpy as np
 
 from cosim.engines import so3
 from cosim.engines.meshes import load_mesh, require_watertight
+from cosim.engines.shapes import DART_SHAPE_KINDS, required_keys
 from cosim.errors import InputError
 
-SHAPE_KINDS = ("box", "sphere", "cylinder", "capsule", "mesh")
+SHAPE_KINDS = DART_SHAPE_KINDS
 JOINT_TYPES = ("free", "planar", "revolute", "prismatic", "ball", "weld")
 CONTROL_MODES = ("passive", "torque", "velocity", "wrench", "twist")
 
@@ -251,16 +252,9 @@ def _mesh_shape(shape: ShapeSpec):
 
 def check_shape(shape: ShapeSpec, where: str) -> None:
     """InputError naming the field if a shape spec is incomplete."""
-    need = {
-        "box": ("size",),
-        "sphere": ("radius",),
-        "cylinder": ("radius", "height"),
-        "capsule": ("radius", "height"),
-        "mesh": ("mesh",),
-    }
-    if shape.kind not in need:
+    if shape.kind not in SHAPE_KINDS:
         raise InputError(f"{where}: unknown shape kind '{shape.kind}'; use one of {', '.join(SHAPE_KINDS)}")
-    for key in need[shape.kind]:
+    for key in required_keys(shape.kind, mesh_key="mesh"):
         if getattr(shape, key) is None:
             raise InputError(f"{where}: a {shape.kind} shape needs '{key}'")
     if shape.kind == "mesh" and not Path(shape.mesh).is_file():
