@@ -49,7 +49,10 @@ def rotation_about(w: np.ndarray | float, angle_scale: float, dim: int) -> np.nd
     """
     if dim == 2:
         return so3.rotation_2d(float(w) * angle_scale)
-    return so3.exp(np.asarray(w, dtype=np.float64) * angle_scale)
+    w = np.asarray(w, dtype=np.float64)
+    if angle_scale == 0 or not np.any(w):  # no turn; also the scalar 0 that stands for "no spin" in 3D
+        return np.eye(3)
+    return so3.exp(w * angle_scale)
 
 
 @dataclass
