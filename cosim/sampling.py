@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from cosim.engines.meshes import load_mesh, require_watertight
 from cosim.errors import SceneError
 
 
@@ -37,24 +38,15 @@ def inside_cylinder(points: np.ndarray, center, radius: float, height: float, ax
 
 
 def load_volume_mesh(path: Path, scale, center, key: str):
-    """Load a watertight mesh, scale it and centre its bounding box at ``center``."""
-    import trimesh
-
-    try:
-        mesh = trimesh.load(path, force="mesh")
-    except Exception as exc:  # trimesh raises many kinds for unreadable files
-        raise SceneError(f"{key}: cannot read mesh {path}: {exc}") from None
-    if len(mesh.faces) == 0:
-        raise SceneError(f"{key}: mesh {path} has no triangles")
-    if not mesh.is_watertight:
-        raise SceneError(
-            f"{key}: mesh {path} is not watertight, so it has no inside to fill with particles; "
-            "close its holes (e.g. trimesh.repair.fill_holes, or remesh it) or use a primitive shape"
-        )
-    mesh = mesh.copy()
-    mesh.apply_scale(scale if np.isscalar(scale) else 1.0)
-    if not np.isscalar(scale):
-        mesh.apply_transform(np.diag(list(scale) + [1.0]))
+    """Load a watertight mesh, scale it (scalar or per axis) and centre its bounding box at ``center`` [m]."""
+    mesh = load_mesh(path, scale, key, SceneError)
+    require_watertight(
+        mesh,
+        f"{key}: mesh {path}",
+        "it has no inside to fill with particles",
+        "close its holes (e.g. trimesh.repair.fill_holes, or remesh it) or use a primitive shape",
+        SceneError,
+    )
     mesh.apply_translation(np.asarray(center) - mesh.bounds.mean(axis=0))
     return mesh
 

@@ -29,6 +29,14 @@ def test_constant_twist_3d():
     check_twist_is_pose_derivative(m, [0.1, 0.7, 2.3])
 
 
+def test_a_3d_body_without_spin_may_give_a_scalar_zero():
+    """Scenes and tests write angular_velocity 0.0 for a body that does not turn, in 3D too."""
+    R0 = rotation_about(np.array([0.3, -0.2, 0.1]), 1.0, 3)
+    m = constant([0.2, 0.0, 0.0], R0, [0.0, 0.0, 0.0], 0.0)
+    assert np.array_equal(m.pose(2.0)[1], R0)
+    assert np.array_equal(rotation_about(np.array([0.0, 2.0, 0.5]), 0.0, 3), np.eye(3))
+
+
 def test_piecewise_shake_at_constant_speed_repeats():
     """Left 0.25 s, right 0.5 s, left 0.25 s at 0.4 m/s: a closed cycle, so the body returns every period."""
     segs = [

@@ -29,8 +29,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from cosim.engines import so3
 
-def constant(p0, R0, velocity, angular_velocity) -> "Motion":
+
+def constant(p0, R0, velocity, angular_velocity) -> Motion:
     """A body moving with a constant twist forever."""
     return Motion(
         "constant",
@@ -41,18 +43,16 @@ def constant(p0, R0, velocity, angular_velocity) -> "Motion":
 
 
 def rotation_about(w: np.ndarray | float, angle_scale: float, dim: int) -> np.ndarray:
-    """exp([w]x * angle_scale): rotation by |w| * angle_scale about w (2D: w is the angle rate)."""
+    """exp([w]x * angle_scale): rotation by |w| * angle_scale [rad] about w (2D: w is the angle rate).
+
+    With w an angular velocity [rad/s] and angle_scale a duration [s], the turn of a constant spin.
+    """
     if dim == 2:
-        a = float(w) * angle_scale
-        c, s = math.cos(a), math.sin(a)
-        return np.array([[c, -s], [s, c]])
+        return so3.rotation_2d(float(w) * angle_scale)
     w = np.asarray(w, dtype=np.float64)
-    theta = float(np.linalg.norm(w)) * angle_scale
-    if theta == 0.0:
+    if angle_scale == 0 or not np.any(w):  # no turn; also the scalar 0 that stands for "no spin" in 3D
         return np.eye(3)
-    k = w / np.linalg.norm(w)
-    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + math.sin(theta) * K + (1 - math.cos(theta)) * K @ K
+    return so3.exp(w * angle_scale)
 
 
 @dataclass

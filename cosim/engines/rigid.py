@@ -18,13 +18,13 @@ contact. ``vjp`` differentiates one step (see there for which blocks are closed 
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import dartpy as dart
 import numpy as np
 
 from cosim.engines.rigid_build import CONTROL_MODES, ShapeSpec, SkeletonSpec, build_skeleton, urdf_geometry
+from cosim.engines.so3 import left_jacobian, left_jacobian_inv
 from cosim.errors import InputError, SimulationError
 
 FD_EPS = 1e-6  # central-difference step for the state blocks (relative error ~1e-9 at unit scales)
@@ -52,28 +52,7 @@ class Control:
     slice: slice
 
 
-# ------------------------------------------------------------------------------------------ SO(3) helpers
-
-
-def hat(v: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-
-
-def left_jacobian(phi: np.ndarray) -> np.ndarray:
-    """J_l(phi): exp(phi + d) = exp(J_l d) exp(phi) to first order."""
-    t = float(np.linalg.norm(phi))
-    K = hat(phi)
-    if t < 1e-6:
-        return np.eye(3) + K / 2 + K @ K / 6
-    return np.eye(3) + (1 - math.cos(t)) / t**2 * K + (t - math.sin(t)) / t**3 * K @ K
-
-
-def left_jacobian_inv(phi: np.ndarray) -> np.ndarray:
-    t = float(np.linalg.norm(phi))
-    K = hat(phi)
-    if t < 1e-6:
-        return np.eye(3) - K / 2 + K @ K / 12
-    return np.eye(3) - K / 2 + (1 / t**2 - (1 + math.cos(t)) / (2 * t * math.sin(t))) * K @ K
+# ------------------------------------------------------------------------------- joint integration Jacobian
 
 
 def position_step_jacobian(kind: str, q_next: np.ndarray, qd_next: np.ndarray, R0: np.ndarray, dt: float) -> np.ndarray:
