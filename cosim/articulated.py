@@ -28,6 +28,7 @@ from cosim.couplers.sdf import (
     shape_sdf,
     shape_spec_sdf,
 )
+from cosim.engines import so3
 from cosim.engines.rigid_build import LinkSpec, ShapeSpec, SkeletonSpec
 from cosim.errors import SceneError
 
@@ -74,7 +75,7 @@ def _euler_deg(rotation, dim: int) -> tuple[float, float, float]:
         return (0.0, 0.0, math.degrees(float(rotation)))
     from scipy.spatial.transform import Rotation
 
-    return tuple(Rotation.from_matrix(_rotvec_matrix(rotation)).as_euler("xyz", degrees=True))
+    return tuple(Rotation.from_matrix(so3.scene_rotation(rotation, 3)).as_euler("xyz", degrees=True))
 
 
 def _lift(v, dim: int, fill: float = 0.0):
@@ -144,18 +145,11 @@ def _skeleton_spec(skel, dim: int, dx: float, source_dir: Path, key: str) -> tup
     return spec, grids
 
 
-def _rotvec_matrix(rotation) -> np.ndarray:
-    """A 3D scene rotation (rotation vector [rad]) as a matrix, as for kinematic bodies."""
-    from cosim.simulation import rotation_matrix
-
-    return rotation_matrix(rotation, 3)
-
-
 def _base_transform(skel) -> np.ndarray | None:
     if skel.position is None and not np.any(skel.rotation):
         return None
     T = np.eye(4)
-    T[:3, :3] = _rotvec_matrix(skel.rotation)
+    T[:3, :3] = so3.scene_rotation(skel.rotation, 3)
     T[:3, 3] = skel.position or (0.0, 0.0, 0.0)
     return T
 
@@ -165,7 +159,7 @@ def placed_shape_sdf(placed, spacing: float, padding: float) -> SDFGrid:
     shape = placed.shape
     if shape.type in ("mesh", "ring"):
         raise SceneError(f"contact_shapes: a {shape.type} cannot be placed on a URDF link; use a primitive")
-    R, t = _rotvec_matrix(placed.rotation), np.asarray(placed.position, float)
+    R, t = so3.scene_rotation(placed.rotation, 3), np.asarray(placed.position, float)
     size = primitive_size(shape)
     lo, hi = placed_box_bounds(primitive_extent(shape.type, 3, **size), R, t)
     return function_sdf(lambda p: primitive_distance(shape.type, (p - t) @ R, **size), lo, hi, spacing, padding)

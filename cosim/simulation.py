@@ -12,7 +12,8 @@ import math
 
 import numpy as np
 
-from cosim.errors import SceneError, SimulationError
+from cosim.engines import so3
+from cosim.errors import SceneError
 from cosim.scene import Scene
 from cosim.system import ActionPlan, CoupledSystem, Control, Stepping
 
@@ -93,22 +94,12 @@ def build_controls(scene: Scene, slices: dict[str, slice], x0: np.ndarray) -> li
     return controls
 
 
-def rotation_matrix(value, dim: int) -> np.ndarray:
-    """A scene rotation (2D angle, 3D rotation vector) as a matrix."""
-    from cosim.engines.kinematic import rotation_about
-
-    if dim == 2:
-        return rotation_about(float(value), 1.0, 2)
-    vec = np.zeros(3) if isinstance(value, (int, float)) else np.asarray(value, dtype=np.float64)
-    return rotation_about(vec, 1.0, 3)
-
-
 def build_motion(spec, dim: int):
     """A kinematic.Motion from a validated rigid-body spec."""
     from cosim.engines.kinematic import Motion, Segment
 
     p0 = np.asarray(spec.position, dtype=np.float64)
-    R0 = rotation_matrix(spec.rotation, dim)
+    R0 = so3.scene_rotation(spec.rotation, dim)
     m = spec.motion
 
     def omega(value):

@@ -30,40 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-
-def _hat(phi: np.ndarray) -> np.ndarray:
-    """[phi]x for a batch of vectors (..., 3) -> (..., 3, 3)."""
-    z = np.zeros(phi.shape[:-1])
-    x, y, w = phi[..., 0], phi[..., 1], phi[..., 2]
-    return np.stack([np.stack([z, -w, y], -1), np.stack([w, z, -x], -1), np.stack([-y, x, z], -1)], -2)
-
-
-def _series(phi: np.ndarray):
-    """|phi|, [phi]x, [phi]x^2 and a safe |phi| (1 where it is ~0) for batched SO(3) formulas."""
-    t = np.linalg.norm(phi, axis=-1)[..., None, None]
-    K = _hat(phi)
-    return t, K, K @ K, np.where(t < 1e-6, 1.0, t)
-
-
-def _exp(phi: np.ndarray) -> np.ndarray:
-    """exp([phi]x) (Rodrigues) for a batch (..., 3) -> (..., 3, 3); a Taylor series near 0."""
-    t, K, K2, ts = _series(phi)
-    a = np.where(t < 1e-6, 1.0 - t**2 / 6, np.sin(ts) / ts)
-    b = np.where(t < 1e-6, 0.5 - t**2 / 24, (1 - np.cos(ts)) / ts**2)
-    return np.eye(3) + a * K + b * K2
-
-
-def _left_jacobian(phi: np.ndarray) -> np.ndarray:
-    """J_l(phi) with exp(phi + d) = exp(J_l d) exp(phi) to first order, batched."""
-    t, K, K2, ts = _series(phi)
-    a = np.where(t < 1e-6, 0.5 - t**2 / 24, (1 - np.cos(ts)) / ts**2)
-    b = np.where(t < 1e-6, 1 / 6 - t**2 / 120, (ts - np.sin(ts)) / ts**3)
-    return np.eye(3) + a * K + b * K2
-
-
-def _axial(M: np.ndarray) -> np.ndarray:
-    """a with <M, [a]x> = a . axial(M), batched (..., 3, 3) -> (..., 3)."""
-    return np.stack([M[..., 2, 1] - M[..., 1, 2], M[..., 0, 2] - M[..., 2, 0], M[..., 1, 0] - M[..., 0, 1]], -1)
+from cosim.engines import so3
 
 
 @dataclass
@@ -81,7 +48,7 @@ def substep_states(b: BodyStates, dt: float, K: int) -> BodyStates:
     """Per-substep states (K, m, ...): each body moves with its twist, p_k = p + k dt v, R_k = exp(k dt w) R."""
     k = (np.arange(K) * dt)[:, None, None]
     pos = substep_origins(b, dt, K)
-    R = _exp(k * b.w[None]) @ b.R[None]
+    R = so3.exp(k * b.w[None]) @ b.R[None]
     return BodyStates(pos, R, np.broadcast_to(b.v, pos.shape).copy(), np.broadcast_to(b.w, pos.shape).copy())
 
 
@@ -94,12 +61,12 @@ def substep_states_vjp(g: BodyStates, b: BodyStates, dt: float) -> BodyStates:
     """Adjoint of ``substep_states``: per-substep gradients (K, m, ...) -> gradients of ``b``."""
     k = (np.arange(len(g.pos)) * dt)[:, None, None]
     phi = k * b.w[None]
-    E = _exp(phi)
+    E = so3.exp(phi)
     R_k = E @ b.R[None]
     gR = (np.swapaxes(E, -1, -2) @ g.R).sum(axis=0)
     # R_k = exp(phi) R with exp(phi + d) = exp(J_l(phi) d) exp(phi): dR_k = [J_l d]x R_k
-    spin = _axial(g.R @ np.swapaxes(R_k, -1, -2))
-    gw = g.w.sum(axis=0) + (k * (np.swapaxes(_left_jacobian(phi), -1, -2) @ spin[..., None])[..., 0]).sum(axis=0)
+    spin = so3.axial(g.R @ np.swapaxes(R_k, -1, -2))
+    gw = g.w.sum(axis=0) + (k * (np.swapaxes(so3.left_jacobian(phi), -1, -2) @ spin[..., None])[..., 0]).sum(axis=0)
     gv = g.v.sum(axis=0) + (k * g.pos).sum(axis=0)
     return BodyStates(g.pos.sum(axis=0), gR, gv, gw)
 

@@ -91,3 +91,12 @@ def euler_xyz(angles: np.ndarray) -> np.ndarray:
     (..., 3) -> (..., 3, 3)."""
     angles = np.asarray(angles, dtype=np.float64)
     return about_axis(angles[..., 2], 2) @ about_axis(angles[..., 1], 1) @ about_axis(angles[..., 0], 0)
+
+
+def scene_rotation(value, dim: int) -> np.ndarray:
+    """A scene's rotation as a matrix: an angle [rad] in 2D, a rotation vector [rad] in 3D (a plain
+    number in 3D means no rotation, the schema's default)."""
+    if dim == 2:
+        return rotation_2d(float(value))
+    vec = np.zeros(3) if isinstance(value, (int, float)) else np.asarray(value, dtype=np.float64)
+    return exp(vec)
