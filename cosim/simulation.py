@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from cosim.errors import SceneError, SimulationError
-from cosim.scene import Scene
+from cosim.scene.schema import Scene
 
 RETRIES = 4  # auto substeps: how often a step is redone with twice the substeps
 

@@ -12,7 +12,7 @@ from typing import Any
 
 from pydantic import BaseModel, ValidationError
 
-from cosim.scene import (
+from cosim.scene.schema import (
     BoxShape,
     CylinderShape,
     ElasticMaterial,
@@ -185,7 +185,7 @@ def semantic_problems(scene: Scene) -> list[str]:
     if scene.rigid is not None:
         problems += rigid_problems(scene)
     if scene.articulated is not None:
-        from cosim.articulated_checks import articulated_problems
+        from cosim.scene.articulated_checks import articulated_problems
 
         problems += articulated_problems(scene)
     for section in ("gradient", "optimize"):

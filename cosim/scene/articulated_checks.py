@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 from cosim.errors import SceneError
-from cosim.scene import Scene
-from cosim.scene_checks import rigid_shape_problems, rotation_problems
+from cosim.scene.schema import Scene
+from cosim.scene.checks import rigid_shape_problems, rotation_problems
 
 # joint type -> (q0 entries in 2D, in 3D); 2D free is DART's planar joint (x, y, angle)
 _JOINT_DOFS = {"free": (3, 6), "revolute": (1, 1), "prismatic": (1, 1), "ball": (None, 3), "weld": (0, 0)}

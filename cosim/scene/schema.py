@@ -3,7 +3,7 @@
 ``load_scene(path)`` parses and validates; any problem raises ``SceneError``
 with one line per problem, each naming the key path, e.g.
 ``mpm.bodies[1].material.E: must be > 0`` (the messages and the checks that
-span several keys are in ``cosim.scene_checks``). The reference of every key
+span several keys are in ``cosim.scene.checks``). The reference of every key
 is ``docs/scene-format.md``; ``cosim.simulation`` builds the engines.
 """
 
@@ -370,7 +370,7 @@ class Scene(Strict):
 # ---------------------------------------------------------------- loading
 def parse_scene(data: Any, source_dir: Path | str = ".", origin: str = "scene") -> Scene:
     """Validate a scene given as Python data (the parsed YAML)."""
-    from cosim.scene_checks import format_errors, semantic_problems
+    from cosim.scene.checks import format_errors, semantic_problems
 
     if not isinstance(data, dict):
         raise SceneError(f"{origin}: the top level must be a mapping of keys, got {type(data).__name__}")
