@@ -4,11 +4,16 @@
 the modules behind it:
 
 - ``schema``: the pydantic models, one per section of the YAML file;
-- ``checks``: what spans several keys (vector lengths against ``dim``, names, files).
+- ``messages``: pydantic's errors as ``key.path[i]: message`` lines;
+- ``checks``: what spans several keys (vector lengths against ``dim``, names, files);
+- ``loader``: ``load_scene`` / ``parse_scene``, which run the schema, then the checks.
+
+Dependencies point one way: schema <- messages, checks <- loader.
 
 The reference of every key is ``docs/scene-format.md``.
 """
 
+from cosim.scene.loader import load_scene, parse_scene
 from cosim.scene.schema import (
     ActionSpec,
     ArticulatedSpec,
@@ -46,8 +51,6 @@ from cosim.scene.schema import (
     Strict,
     TimeSpec,
     Vec,
-    load_scene,
-    parse_scene,
 )
 
 __all__ = [
@@ -66,11 +69,11 @@ __all__ = [
     "LinkSceneSpec",
     "LiquidMaterial",
     "LossSpec",
+    "MPMSpec",
     "Material",
     "MeshShape",
     "MotionSegment",
     "MotionSpec",
-    "MPMSpec",
     "OptimizeSpec",
     "OutputSpec",
     "PlacedShape",
