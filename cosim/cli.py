@@ -74,11 +74,11 @@ def cmd_run(args) -> int:
 
 
 def cmd_validate(args) -> int:
-    from cosim.simulation import build_bodies
+    from cosim.scene.particles import body_positions  # NumPy only: validating imports neither Taichi nor DART
 
     scene = _load(args)
-    bodies = build_bodies(scene)  # also checks meshes and that bodies fit the grid
-    n = sum(b.n for b in bodies)
+    bodies = body_positions(scene)  # also checks meshes and that bodies fit the grid
+    n = sum(len(b) for b in bodies)
     print(
         f"{args.scene}: valid ({scene.dim}D, {len(bodies)} bodies, {n} particles, "
         f"grid {scene.cells}, dx {scene.dx:g} m)"

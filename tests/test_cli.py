@@ -59,6 +59,22 @@ def test_run_without_rigid_bodies_imports_neither_dartpy_nor_cloth(tmp_path):
     assert res.returncode == 0, res.stderr
 
 
+@pytest.mark.parametrize("scene", ["shake_container_2d", "pour_water"])
+def test_validate_imports_neither_taichi_nor_dartpy(scene):
+    """Validating (schema, checks, particle sampling) needs neither engine: kinematic rigid bodies
+    (shake_container_2d) and DART links built from primitives (pour_water)."""
+    code = (
+        "import sys\n"
+        "from cosim.cli import main\n"
+        f"assert main(['validate', '{scene}']) == 0\n"
+        "bad = [m for m in sys.modules if m.split('.')[0] in ('taichi', 'dartpy')]\n"
+        "assert not bad, bad\n"
+    )
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=600)
+    assert res.returncode == 0, res.stderr
+    assert f"{scene}: valid" in res.stdout
+
+
 def write_scene(tmp_path, **overrides):
     path = tmp_path / "scene.yaml"
     path.write_text(yaml.safe_dump(scene_dict(**overrides)))
