@@ -6,9 +6,12 @@ the modules behind it:
 - ``schema``: the pydantic models, one per section of the YAML file;
 - ``messages``: pydantic's errors as ``key.path[i]: message`` lines;
 - ``checks``: what spans several keys (vector lengths against ``dim``, names, files);
-- ``loader``: ``load_scene`` / ``parse_scene``, which run the schema, then the checks.
+- ``loader``: ``load_scene`` / ``parse_scene``, which run the schema, then the checks;
+- ``particles``: the soft bodies sampled into particles with NumPy only (``cosim validate``);
+- ``shipped``: where the scenes shipped with cosim are (``scenes_dir``).
 
-Dependencies point one way: schema <- messages, checks <- loader.
+Dependencies point one way: schema <- messages, checks <- loader. Nothing here imports
+Taichi or DART at module level; only a URDF skeleton's check reaches ``cosim.articulated``.
 
 The reference of every key is ``docs/scene-format.md``.
 """
