@@ -11,20 +11,16 @@ import argparse
 import sys
 from pathlib import Path
 
+from cosim.bench import BENCHMARKS
 from cosim.errors import CosimError
 
 DEFAULT_SCENE = "elastic_bounce_2d.yaml"
 
 
-def scenes_dir() -> Path:
-    """The shipped scenes (the repository's scenes/ folder, installed as cosim.scenes)."""
-    from importlib import resources
-
-    return Path(str(resources.files("cosim.scenes")))
-
-
 def resolve_scene(arg: str | None) -> Path:
     """A scene path: as given, else a shipped scene by name (with or without .yaml)."""
+    from cosim.scene.shipped import scenes_dir
+
     if arg is None:
         return scenes_dir() / DEFAULT_SCENE
     path = Path(arg)
@@ -74,11 +70,11 @@ def cmd_run(args) -> int:
 
 
 def cmd_validate(args) -> int:
-    from cosim.simulation import build_bodies
+    from cosim.scene.particles import body_positions  # NumPy only: validating imports neither Taichi nor DART
 
     scene = _load(args)
-    bodies = build_bodies(scene)  # also checks meshes and that bodies fit the grid
-    n = sum(b.n for b in bodies)
+    bodies = body_positions(scene)  # also checks meshes and that bodies fit the grid
+    n = sum(len(b) for b in bodies)
     print(
         f"{args.scene}: valid ({scene.dim}D, {len(bodies)} bodies, {n} particles, "
         f"grid {scene.cells}, dx {scene.dx:g} m)"
@@ -174,17 +170,9 @@ def cmd_optimize(args) -> int:
 
 
 def cmd_bench(args) -> int:
-    if args.what == "coupling":
-        from cosim.bench_coupling import run_coupling_bench
-
-        return run_coupling_bench(Path(args.out), quick=args.quick, repeat=args.repeat)
-    if args.what == "contact":
-        from cosim.bench_contact import run_contact_bench
-
-        return run_contact_bench(Path(args.out), quick=args.quick, repeat=args.repeat)
     from cosim.bench import run_bench
 
-    return run_bench(args.what, Path(args.out), quick=args.quick)
+    return run_bench(args.what, Path(args.out), quick=args.quick, repeat=args.repeat)
 
 
 def cmd_render(args) -> int:
@@ -271,7 +259,7 @@ def make_parser() -> argparse.ArgumentParser:
     o.set_defaults(func=cmd_optimize)
 
     b = sub.add_parser("bench", help="benchmarks: throughput, backward/forward ratio, memory")
-    b.add_argument("what", choices=["mpm", "contact", "coupling"])
+    b.add_argument("what", choices=BENCHMARKS)
     b.add_argument("--out", default="out/bench", help="folder for the CSV")
     b.add_argument("--quick", action="store_true", help="fewer substeps (a smoke run)")
     b.add_argument("--repeat", type=positive_int, default=3, help="contact, coupling: repetitions; times are medians")

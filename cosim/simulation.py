@@ -14,7 +14,7 @@ import numpy as np
 
 from cosim.engines import so3
 from cosim.errors import SceneError
-from cosim.scene import Scene
+from cosim.scene.schema import Scene
 from cosim.system import ActionPlan, CoupledSystem, Control, Stepping
 
 def build_bodies(scene: Scene):

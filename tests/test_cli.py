@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import subprocess
 import sys
 
@@ -10,6 +11,8 @@ import numpy as np
 import pytest
 import yaml
 from conftest import ROOT, run_cli, scene_dict, shipped_scenes
+
+from cosim.scene import load_scene
 
 
 @pytest.mark.parametrize("path", shipped_scenes())
@@ -27,8 +30,25 @@ def test_every_shipped_scene_runs_and_writes_its_outputs(path, tmp_path):
     metrics = json.loads((tmp_path / "metrics.json").read_text())
     for key in ("wall_time_s", "steps", "substeps_total", "particles", "max_cfl", "energy_final", "hardware"):
         assert key in metrics
-    assert metrics["steps"] == 4 and 0 < metrics["max_cfl"] <= 0.3
+    assert metrics["steps"] == 4
+    # Explicit stability: every step takes at least the substeps the elastic wave asks for,
+    # c frame_dt / K <= cfl dx (speeds only add to it; measured: equal in 9 of the 10 scenes run here).
+    scene = load_scene(path)
+    c = max(p_wave_speed(b.material.E, b.material.nu, b.material.density) for b in scene.mpm.bodies)
+    need = math.ceil(scene.time.frame_dt * c / (scene.time.cfl * scene.dx) - 1e-9)
+    substeps = metrics["substeps_per_step"]
+    assert substeps["min"] >= need, (substeps, need)
+    assert 4 * substeps["min"] <= metrics["substeps_total"] <= 4 * substeps["max"]
+    driven = scene.rigid or scene.articulated or any(ctl.impulse and any(ctl.impulse) for ctl in scene.controls)
+    if not driven:
+        # nothing drives the material: MPM only dissipates (measured: -7e-5 to -2e-4 of the total in 4 steps)
+        assert metrics["energy_final"]["total"] <= metrics["energy_initial"]["total"]
     assert (tmp_path / "preview.gif").stat().st_size > 1000
+
+
+def p_wave_speed(E: float, nu: float, density: float) -> float:
+    """sqrt((lam + 2 mu) / rho) = sqrt(E (1 - nu) / ((1 + nu) (1 - 2 nu) rho)) [m/s]."""
+    return math.sqrt(E * (1 - nu) / ((1 + nu) * (1 - 2 * nu) * density))
 
 
 def test_default_scene_preview_shows_the_body_moving(tmp_path):
@@ -57,6 +77,22 @@ def test_run_without_rigid_bodies_imports_neither_dartpy_nor_cloth(tmp_path):
     )
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=600)
     assert res.returncode == 0, res.stderr
+
+
+@pytest.mark.parametrize("scene", ["shake_container_2d", "pour_water"])
+def test_validate_imports_neither_taichi_nor_dartpy(scene):
+    """Validating (schema, checks, particle sampling) needs neither engine: kinematic rigid bodies
+    (shake_container_2d) and DART links built from primitives (pour_water)."""
+    code = (
+        "import sys\n"
+        "from cosim.cli import main\n"
+        f"assert main(['validate', '{scene}']) == 0\n"
+        "bad = [m for m in sys.modules if m.split('.')[0] in ('taichi', 'dartpy')]\n"
+        "assert not bad, bad\n"
+    )
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=600)
+    assert res.returncode == 0, res.stderr
+    assert f"{scene}: valid" in res.stdout
 
 
 def write_scene(tmp_path, **overrides):
@@ -111,6 +147,11 @@ def test_run_contact_override_reports_particles_inside_rigid_bodies(tmp_path):
     assert res.returncode == 0, res.stderr
     assert "contact model forecast: particles inside rigid bodies at the end: container:" in res.stdout
     metrics = json.loads((tmp_path / "metrics.json").read_text())
-    assert metrics["contact_model"] == "forecast" and metrics["particles_inside_rigid"]["container"] >= 0
+    assert metrics["contact_model"] == "forecast"
+    # 3 frames of 2 ms move the water less than a cell: it all stays in the container's cavity, none in
+    # its wall or spilled (measured: 1485 of 1485 held); the three counts partition the particles
+    inside, held = metrics["particles_inside_rigid"]["container"], metrics["particles_held"]["container"]
+    assert inside + held + metrics["particles_elsewhere"] == metrics["particles"]
+    assert held == metrics["particles"] and inside == 0
     bad = run_cli("run", "elastic_bounce_2d", "--contact", "grid", "--steps", "2", "--out", str(tmp_path / "b"))
     assert bad.returncode == 2 and "no rigid bodies" in bad.stderr

@@ -293,7 +293,7 @@ def test_bench_metrics_count_penetration_and_fast_separation_only():
     """The contact benchmark's metrics on hand-placed particles: a ring of inner radius 0.2,
     wall 0.02, moving at (0.3, 0); rebound counts only particles near the wall that leave it
     faster than the threshold relative to the wall."""
-    from cosim.bench_contact import penetration_counts, rebound_count
+    from cosim.bench.contact import penetration_counts, rebound_count
 
     center, inner, wall = np.array([0.5, 0.5]), 0.2, 0.02
     radii = np.array([0.1, 0.19, 0.205, 0.215, 0.25, 0.3])

@@ -157,5 +157,7 @@ def test_adjoint_matches_finite_differences_3d():
     params = obj.initial_params()
     scales = {"v0": 1.0, "impulse": 1e-4, "E": 2e3}
     results = check_gradients(obj.evaluate, params, ["v0", "impulse", "E"], scales, directions=1, seed=2)
+    assert {r.param for r in results} == {"v0", "impulse", "E"}
     for r in results:
+        assert abs(r.finite_difference) > 0, "the loss must depend on the parameter for the test to mean anything"
         assert r.relative_error < TOL, r

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 from conftest import make_scene, scene_dict
@@ -25,14 +27,22 @@ def test_fixed_substeps_below_the_elastic_bound_is_refused_naming_the_body():
 
 
 def test_auto_substeps_follow_the_cfl_bound():
-    """Auto substeps keep max|v| dt / dx within time.cfl, whatever the speed."""
+    """Auto substeps: K = ceil(frame_dt (v + |g| frame_dt + c) / (cfl dx)) from the state before each
+    step, v the largest velocity component and c = sqrt((lam + 2 mu) / rho) the P-wave speed (1.64 m/s
+    here), so that (v + c) dt / dx <= cfl. The count is an integer, so any other rule shows."""
     bodies = [block() | {"velocity": [6.0, 0.0]}]
     scene = make_scene(
         time={"frame_dt": 4e-3, "substeps": "auto", "cfl": 0.3}, mpm={"grid": {"cells": 32}, "bodies": bodies}, steps=5
     )
     sim = build_system(scene)
-    infos = [sim.step() for _ in range(5)]
-    assert sim.max_cfl <= 0.3
+    E, nu, rho, dx, frame_dt = 2e3, 0.3, 1000.0, 1 / 32, 4e-3
+    mu, lam = E / (2 * (1 + nu)), E * nu / ((1 + nu) * (1 - 2 * nu))
+    c = math.sqrt((lam + 2 * mu) / rho)
+    infos = []
+    for _ in range(5):
+        v = float(np.abs(sim.mpm.state()["v"]).max()) + 9.81 * frame_dt
+        infos.append(sim.step())
+        assert infos[-1].substeps == math.ceil(frame_dt * (v + c) / (0.3 * dx))
     # 6 m/s over 4 ms is 0.77 cells; at CFL 0.3 that needs at least 3 substeps
     assert min(i.substeps for i in infos) >= 3
 

@@ -96,10 +96,10 @@ def _backward(scene, steps: int, repeat: int) -> float:
 
 
 def run_coupling_bench(out_dir: Path, quick: bool = False, repeat: int = 3) -> int:
-    from cosim.cli import scenes_dir
     from cosim.run import hardware_line
     from cosim.runtime import ensure_taichi
     from cosim.scene import load_scene
+    from cosim.scene.shipped import scenes_dir
 
     ensure_taichi("cpu", "float64")
     out_dir.mkdir(parents=True, exist_ok=True)

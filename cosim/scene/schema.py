@@ -1,21 +1,17 @@
 """The YAML scene format: a validated, typed description of one simulation.
 
-``load_scene(path)`` parses and validates; any problem raises ``SceneError``
-with one line per problem, each naming the key path, e.g.
-``mpm.bodies[1].material.E: must be > 0`` (the messages and the checks that
-span several keys are in ``cosim.scene_checks``). The reference of every key
-is ``docs/scene-format.md``; ``cosim.simulation`` builds the engines.
+One pydantic model per section; each validates its own keys (types, ranges,
+unknown keys). What spans several keys is checked in ``cosim.scene.checks``,
+and ``cosim.scene.loader`` runs both. The reference of every key is
+``docs/scene-format.md``; ``cosim.simulation`` builds the engines.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Any, Literal, Union
+from typing import Annotated, Any, Literal
 
-import yaml
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationError
-
-from cosim.errors import SceneError
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
 
 Vec = list[float]
 Positive = Annotated[float, Field(gt=0)]
@@ -32,7 +28,7 @@ def _auto_or_int(value: Any) -> Any:
     if value == "auto" or value is None:
         return 0
     if isinstance(value, bool) or not isinstance(value, int):
-        raise ValueError("must be 'auto' or a positive integer")
+        raise ValueError("must be 'auto' or a positive integer")  # noqa: TRY004 (pydantic reports only ValueError)
     if value < 1:
         raise ValueError("must be 'auto' or a positive integer")
     return value
@@ -49,7 +45,7 @@ def _int_or_list(value: Any) -> Any:
     if isinstance(value, int) and not isinstance(value, bool):
         return [value]
     if not isinstance(value, list):
-        raise ValueError(f"must be an integer or a list of integers (got {value!r})")
+        raise ValueError(f"must be an integer or a list of integers (got {value!r})")  # noqa: TRY004 (as above)
     return value
 
 
@@ -84,7 +80,7 @@ class LiquidMaterial(_MaterialBase):
     viscosity: Annotated[float, Field(ge=0)] = 0.0  # [Pa s]; water is 1e-3
 
 
-Material = Annotated[Union[ElasticMaterial, PlasticMaterial, LiquidMaterial], Field(discriminator="type")]
+Material = Annotated[ElasticMaterial | PlasticMaterial | LiquidMaterial, Field(discriminator="type")]
 
 
 # ---------------------------------------------------------------- shapes
@@ -124,7 +120,7 @@ class MeshShape(Strict):
     scale: Positive | list[Positive] = 1.0
 
 
-Shape = Annotated[Union[BoxShape, SphereShape, CylinderShape, MeshShape], Field(discriminator="type")]
+Shape = Annotated[BoxShape | SphereShape | CylinderShape | MeshShape, Field(discriminator="type")]
 
 
 class BodySpec(Strict):
@@ -268,8 +264,10 @@ class SkeletonSceneSpec(Strict):
     urdf: str | None = None
     fixed_base: bool = True  # urdf: weld the root link to the world
     position: Vec | None = None  # urdf: the root link's origin in the world [m]
-    rotation: float | Vec = 0.0  # urdf: the root's rotation (rotation vector [rad]; a z-up URDF in a y-up scene: [-1.5708, 0, 0])
-    contact_shapes: dict[str, "PlacedShape"] = {}  # urdf: link -> our shape as its MPM contact geometry
+    rotation: float | Vec = (
+        0.0  # urdf: the root's rotation (rotation vector [rad]; a z-up URDF in a y-up scene: [-1.5708, 0, 0])
+    )
+    contact_shapes: dict[str, PlacedShape] = {}  # urdf: link -> our shape as its MPM contact geometry
     package_dirs: dict[str, str] = {}  # urdf: package://name/ -> folder (relative to the scene)
     initial_positions: dict[str, float | Vec] = {}  # urdf: joint name -> position
     couple: Literal["all", "none"] | list[str] = "all"  # urdf: links the MPM sees
@@ -352,48 +350,19 @@ class Scene(Strict):
 
     @property
     def dx(self) -> float:
+        """[m] the grid spacing: ``mpm.grid.dx``, default 1 / max(cells)."""
         return self.mpm.grid.dx or 1.0 / max(self.cells)
 
     @property
     def cells(self) -> tuple[int, ...]:
+        """Grid cells per axis (one number in the file means the same on every axis)."""
         c = self.mpm.grid.cells
         return tuple(c * self.dim if len(c) == 1 else c)
 
     @property
     def gravity(self) -> tuple[float, ...]:
+        """[m/s^2] ``mpm.gravity``, default -9.81 along y."""
         g = self.mpm.gravity
         if g is None:
             return (0.0, -9.81) + (0.0,) * (self.dim - 2)
         return tuple(g)
-
-
-# ---------------------------------------------------------------- loading
-def parse_scene(data: Any, source_dir: Path | str = ".", origin: str = "scene") -> Scene:
-    """Validate a scene given as Python data (the parsed YAML)."""
-    from cosim.scene_checks import format_errors, semantic_problems
-
-    if not isinstance(data, dict):
-        raise SceneError(f"{origin}: the top level must be a mapping of keys, got {type(data).__name__}")
-    try:
-        scene = Scene.model_validate(data)
-    except ValidationError as exc:
-        raise SceneError(f"{origin}: invalid scene\n  " + "\n  ".join(format_errors(exc))) from None
-    scene.source_dir = Path(source_dir)
-    problems = semantic_problems(scene)
-    if problems:
-        raise SceneError(f"{origin}: invalid scene\n  " + "\n  ".join(problems))
-    return scene
-
-
-def load_scene(path: str | Path, overrides: dict | None = None) -> Scene:
-    """Read, parse and validate a YAML scene file; ``overrides`` replace top-level keys."""
-    path = Path(path)
-    if not path.is_file():
-        raise SceneError(f"scene file not found: {path}")
-    try:
-        data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as exc:
-        raise SceneError(f"{path}: not valid YAML: {exc}") from None
-    if isinstance(data, dict) and overrides:
-        data = {**data, **overrides}
-    return parse_scene(data, path.parent, origin=str(path))

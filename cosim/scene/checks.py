@@ -1,124 +1,17 @@
-"""Scene validation beyond single keys, and pydantic errors in the user's words.
+"""Scene checks that span several keys, each problem a line naming its key path.
 
-``format_errors`` turns pydantic's errors into ``key.path[i]: message`` lines;
-``semantic_problems`` checks what spans several keys (vector lengths against
-``dim``, body names, files, 3D-only shapes).
+``semantic_problems`` checks vector lengths against ``dim``, body names, files,
+3D-only shapes, the rigid bodies' motions and the ``articulated:`` section
+(skeletons, links, joints, controls); ``cosim.scene.loader`` calls it after
+the schema has validated every single key.
 """
 
 from __future__ import annotations
 
 import math
-from typing import Any
 
-from pydantic import BaseModel, ValidationError
-
-from cosim.scene import (
-    BoxShape,
-    CylinderShape,
-    ElasticMaterial,
-    LiquidMaterial,
-    MeshShape,
-    PlasticMaterial,
-    Scene,
-    SphereShape,
-)
-
-_TAGS = {"elastic", "plastic", "liquid", "box", "sphere", "cylinder", "mesh"}
-
-
-def _path(loc: tuple) -> str:
-    out = ""
-    for i, part in enumerate(loc):
-        if isinstance(part, int):
-            out += f"[{part}]"
-        elif part in _TAGS and i > 0 and loc[i - 1] in ("material", "shape"):
-            continue  # the discriminator's branch name is noise for the user
-        elif isinstance(part, str) and part.startswith("function-"):
-            continue
-        else:
-            out += ("." if out else "") + str(part)
-    return out or "(top level)"
-
-
-def _allowed_keys(loc: tuple) -> list[str]:
-    """Keys allowed in the mapping that holds ``loc[-1]`` (for unknown-key errors)."""
-    model: Any = Scene
-    for part in loc[:-1]:
-        if isinstance(part, int):
-            continue
-        if part in _TAGS:
-            model = next(m for m in _UNION_MEMBERS if m.model_fields["type"].annotation.__args__[0] == part)
-            continue
-        if not (isinstance(model, type) and issubclass(model, BaseModel)) or part not in model.model_fields:
-            return []
-        ann = model.model_fields[part].annotation
-        model = _model_in(ann)
-        if model is None:
-            return []
-    if isinstance(model, type) and issubclass(model, BaseModel):
-        return sorted(k for k, f in model.model_fields.items() if not f.exclude)
-    return []
-
-
-_UNION_MEMBERS = (ElasticMaterial, PlasticMaterial, LiquidMaterial, BoxShape, SphereShape, CylinderShape, MeshShape)
-
-
-def _model_in(annotation: Any) -> Any:
-    """The BaseModel class inside an annotation such as list[X], X | None, Annotated[...]."""
-    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
-        return annotation
-    for arg in getattr(annotation, "__args__", ()) or ():
-        found = _model_in(arg)
-        if found is not None:
-            return found
-    for arg in getattr(annotation, "__metadata__", ()) or ():
-        found = _model_in(arg)
-        if found is not None:
-            return found
-    origin = getattr(annotation, "__origin__", None)
-    if origin is not None and origin is not annotation:
-        return _model_in(origin)
-    return None
-
-
-def _message(err: dict) -> str:
-    kind, ctx = err["type"], err.get("ctx", {})
-    loc = tuple(err["loc"])
-    if kind == "extra_forbidden":
-        allowed = _allowed_keys(loc)
-        hint = f"; allowed keys here: {', '.join(allowed)}" if allowed else ""
-        return f"unknown key{hint}"
-    if kind == "missing":
-        return "required key is missing"
-    ops = {"greater_than": ">", "greater_than_equal": ">=", "less_than": "<", "less_than_equal": "<="}
-    if kind in ops:
-        bound = next(iter(ctx.values()))
-        return f"must be {ops[kind]} {bound} (got {err.get('input')!r})"
-    if kind == "literal_error":
-        return f"must be one of {ctx.get('expected')} (got {err.get('input')!r})"
-    if kind == "union_tag_invalid":
-        return f"unknown type {ctx.get('tag')!r}; choose one of {ctx.get('expected_tags')}"
-    if kind == "union_tag_not_found":
-        return "missing 'type' key"
-    if kind == "finite_number":
-        return "must be a finite number"
-    if kind in ("float_parsing", "float_type"):
-        return f"must be a number (got {err.get('input')!r})"
-    if kind in ("int_parsing", "int_type", "int_from_float"):
-        return f"must be an integer (got {err.get('input')!r})"
-    if kind in ("list_type",):
-        return f"must be a list (got {err.get('input')!r})"
-    if kind in ("model_type", "model_attributes_type", "dict_type"):
-        return f"must be a mapping of keys (got {err.get('input')!r})"
-    if kind == "too_short":
-        return f"needs at least {ctx.get('min_length')} entries"
-    if kind == "value_error":
-        return str(ctx.get("error", err["msg"]))
-    return err["msg"]
-
-
-def format_errors(exc: ValidationError) -> list[str]:
-    return [f"{_path(tuple(e['loc']))}: {_message(e)}" for e in exc.errors()]
+from cosim.errors import SceneError
+from cosim.scene.schema import BoxShape, CylinderShape, MeshShape, Scene
 
 
 def semantic_problems(scene: Scene) -> list[str]:
@@ -185,13 +78,11 @@ def semantic_problems(scene: Scene) -> list[str]:
     if scene.rigid is not None:
         problems += rigid_problems(scene)
     if scene.articulated is not None:
-        from cosim.articulated_checks import articulated_problems
-
         problems += articulated_problems(scene)
     for section in ("gradient", "optimize"):
-        if "action" in getattr(scene, section).params and section in scene.model_fields_set:
-            if scene.articulated is None or not any(s.controls for s in scene.articulated.skeletons):
-                problems.append(f"{section}.params: 'action' needs a skeleton with controls under articulated:")
+        asks = "action" in getattr(scene, section).params and section in scene.model_fields_set
+        if asks and (scene.articulated is None or not any(s.controls for s in scene.articulated.skeletons)):
+            problems.append(f"{section}.params: 'action' needs a skeleton with controls under articulated:")
     if "impulse" in scene.gradient.params and not scene.controls and "gradient" in scene.model_fields_set:
         problems.append("gradient.params: 'impulse' needs at least one entry under controls")
     if "impulse" in scene.optimize.params and not scene.controls and "optimize" in scene.model_fields_set:
@@ -233,7 +124,9 @@ def rigid_problems(scene: Scene) -> list[str]:
 def rigid_shape_problems(key: str, shape, scene: Scene) -> list[str]:
     """A rigid shape has its sizes for its type and dimension, and its mesh file exists."""
     d = scene.dim
-    problems = [f"{key}.{k}: required for a {shape.type}" for k in _SHAPE_NEEDS[shape.type] if getattr(shape, k) is None]
+    problems = [
+        f"{key}.{k}: required for a {shape.type}" for k in _SHAPE_NEEDS[shape.type] if getattr(shape, k) is None
+    ]
     if shape.type == "box" and shape.size is not None and len(shape.size) != d:
         problems.append(f"{key}.size: must have {d} entries (dim is {d}), got {len(shape.size)}")
     if shape.type == "ring" and d != 2:
@@ -243,9 +136,9 @@ def rigid_shape_problems(key: str, shape, scene: Scene) -> list[str]:
             problems.append(f"{key}.type: meshes are 3D; in 2D use box, sphere, capsule, glass or ring")
         elif shape.file is not None and not (scene.source_dir / shape.file).resolve().is_file():
             problems.append(f"{key}.file: file not found: {(scene.source_dir / shape.file).resolve()}")
-    if shape.type == "glass" and None not in (shape.radius, shape.thickness, shape.height):
-        if shape.thickness >= min(shape.radius, shape.height):
-            problems.append(f"{key}.thickness: must be below the radius and the height")
+    sized = None not in (shape.radius, shape.thickness, shape.height)
+    if shape.type == "glass" and sized and shape.thickness >= min(shape.radius, shape.height):
+        problems.append(f"{key}.thickness: must be below the radius and the height")
     return problems
 
 
@@ -284,4 +177,106 @@ def _motion_problems(key: str, m, d: int, position) -> list[str]:
             problems.append(f"{key}.positions: each must have {d} entries (dim is {d})")
         elif max(abs(a - b) for a, b in zip(m.positions[0], position)) > 1e-9:
             problems.append(f"{key}.positions[0]: must equal the body's position {position}")
+    return problems
+
+
+# ---------------------------------------------------------------- articulated:
+# joint type -> (q0 entries in 2D, in 3D); 2D free is DART's planar joint (x, y, angle)
+_JOINT_DOFS = {"free": (3, 6), "revolute": (1, 1), "prismatic": (1, 1), "ball": (None, 3), "weld": (0, 0)}
+
+
+def articulated_problems(scene: Scene) -> list[str]:
+    """Skeletons: unique names, links or a URDF file (found), joints and controls that fit ``dim``."""
+    d = scene.dim
+    problems: list[str] = []
+    skeletons = scene.articulated.skeletons
+    names = [s.name for s in skeletons]
+    taken = {b.name for b in scene.mpm.bodies} | {b.name for b in (scene.rigid.bodies if scene.rigid else [])}
+    for i, skel in enumerate(skeletons):
+        key = f"articulated.skeletons[{i}]"
+        if names.count(skel.name) > 1 or skel.name in taken:
+            problems.append(f"{key}.name: '{skel.name}' is used twice; names must be unique")
+        if (skel.urdf is None) == (not skel.links):
+            problems.append(f"{key}: give either links (primitives) or urdf (a file), not both or neither")
+        if skel.collide and d == 2:
+            problems.append(f"{key}.collide: DART rigid-rigid collision is 3D only; set it false in 2D")
+        if skel.urdf is not None:
+            problems += _urdf_problems(key, skel, scene)
+            continue
+        problems += _links_problems(key, skel, scene)
+    return problems
+
+
+def _urdf_problems(key: str, skel, scene: Scene) -> list[str]:
+    problems = []
+    if scene.dim != 3:
+        problems.append(f"{key}.urdf: URDF skeletons are 3D; in 2D build the skeleton from links")
+    # cosim.articulated imports the SDF code (Taichi) and DART: only URDF scenes pay for it here
+    from cosim.articulated import resolve_asset
+
+    try:
+        path = resolve_asset(skel.urdf, scene.source_dir, f"{key}.urdf")
+        if not path.is_file():
+            problems.append(f"{key}.urdf: file not found: {path}")
+        for name, folder in skel.package_dirs.items():
+            found = resolve_asset(folder, scene.source_dir, f"{key}.package_dirs.{name}")
+            if not found.is_dir():
+                problems.append(f"{key}.package_dirs.{name}: folder not found: {found}")
+    except SceneError as exc:
+        problems.append(str(exc))
+    if skel.position is not None and len(skel.position) != 3:
+        problems.append(f"{key}.position: must have 3 entries, got {len(skel.position)}")
+    problems += rotation_problems(f"{key}.rotation", skel.rotation, 3)
+    for link, placed in skel.contact_shapes.items():
+        problems += rigid_shape_problems(f"{key}.contact_shapes.{link}.shape", placed.shape, scene)
+        if placed.shape.type in ("mesh", "ring"):
+            problems.append(
+                f"{key}.contact_shapes.{link}.shape.type: use a primitive (box, sphere, cylinder, capsule, glass)"
+            )
+    return problems
+
+
+def _links_problems(key: str, skel, scene: Scene) -> list[str]:
+    d = scene.dim
+    problems = []
+    links = [lk.name for lk in skel.links]
+    for j, link in enumerate(skel.links):
+        base = f"{key}.links[{j}]"
+        if links.count(link.name) > 1:
+            problems.append(f"{base}.name: '{link.name}' is used twice in skeleton '{skel.name}'")
+        problems += rigid_shape_problems(f"{base}.shape", link.shape, scene)
+        if (link.density is None) == (link.mass is None):
+            problems.append(f"{base}: give density [kg/m^3] or mass [kg] (one of them)")
+        joint = link.joint
+        if joint.parent is not None and joint.parent not in links[:j]:
+            problems.append(
+                f"{base}.joint.parent: '{joint.parent}' is not a link listed before '{link.name}' "
+                f"(parents come first; links: {links})"
+            )
+        if joint.type == "ball" and d == 2:
+            problems.append(f"{base}.joint.type: a ball joint is 3D; in 2D use revolute")
+        if link.offset is not None and len(link.offset) != d:
+            problems.append(f"{base}.offset: must have {d} entries (dim is {d}), got {len(link.offset)}")
+        if joint.position is not None and len(joint.position) != d:
+            problems.append(f"{base}.joint.position: must have {d} entries (dim is {d}), got {len(joint.position)}")
+        problems += rotation_problems(f"{base}.joint.rotation", joint.rotation, d)
+        if joint.type in ("revolute", "prismatic") and d == 3 and joint.axis is None:
+            problems.append(f"{base}.joint.axis: a {joint.type} joint needs its axis in 3D")
+        if joint.axis is not None and len(joint.axis) != d:
+            problems.append(f"{base}.joint.axis: must have {d} entries (dim is {d}), got {len(joint.axis)}")
+        dofs = _JOINT_DOFS[joint.type][0 if d == 2 else 1]
+        for name in ("q0", "qd0"):
+            value = getattr(joint, name)
+            n = 1 if isinstance(value, (int, float)) else len(value or [])
+            if value is not None and n != dofs:
+                problems.append(f"{base}.joint.{name}: a {joint.type} joint in {d}D has {dofs} coordinates, got {n}")
+    for joint, mode in skel.controls.items():
+        if joint not in links:
+            problems.append(f"{key}.controls.{joint}: no such joint (joints are named after their links: {links})")
+            continue
+        link = skel.links[links.index(joint)]
+        if mode in ("wrench", "twist") and (link.joint.type != "free" or link.joint.parent or d == 2):
+            problems.append(
+                f"{key}.controls.{joint}: '{mode}' needs a 3D free joint on the world; use torque or velocity"
+            )
     return problems

@@ -61,8 +61,8 @@ class ContainerRun:
     table advance in turn and share the machine's state when timed)."""
 
     def __init__(self, model: str, stiffness: float | None, thickness: float, steps: int, track: bool = False):
-        from cosim.cli import scenes_dir
         from cosim.scene import load_scene
+        from cosim.scene.shipped import scenes_dir
         from cosim.simulation import build_system
 
         contact = {"model": model} | ({"stiffness": stiffness} if stiffness else {})
@@ -139,7 +139,9 @@ def _median_rows(repeats: list[list[dict]]) -> list[dict]:
         for key in ("penetrated", "in_wall", "rebound"):
             if any(r[key] != first[key] for r in same):
                 print(f"  note: {first['model']} {first['k']} {first['thickness']}: {key} differs between repetitions")
-        grid = [next(g for g in rep if g["model"] == "grid" and g["thickness"] == first["thickness"]) for rep in repeats]
+        grid = [
+            next(g for g in rep if g["model"] == "grid" and g["thickness"] == first["thickness"]) for rep in repeats
+        ]
         ratios = [r["seconds"] / g["seconds"] for r, g in zip(same, grid)]
         rows.append(
             first
@@ -185,8 +187,10 @@ def run_contact_bench(out_dir: Path, quick: bool = False, repeat: int = 3) -> in
         writer.writeheader()
         writer.writerows(rows)
     lines = [
-        f"Contact benchmark: {steps} frames of shake_container_2d on {hardware_line()}; "
-        f"seconds: median of {repeat} repetitions in one process",
+        (
+            f"Contact benchmark: {steps} frames of shake_container_2d on {hardware_line()}; "
+            f"seconds: median of {repeat} repetitions in one process"
+        ),
         "",
         "| model | k | wall | penetrated | in wall | rebound | seconds | time / grid (min-max) |",
         "|---|---|---|---|---|---|---|---|",
@@ -200,9 +204,11 @@ def run_contact_bench(out_dir: Path, quick: bool = False, repeat: int = 3) -> in
     if "objective_decrease" in tracked:
         lines += [
             "",
-            f"Forecast objective |W^T v_g - v_tgt|^2: average decrease per substep "
-            f"{100 * tracked['objective_decrease']:.1f}% over {min(steps, 200)} frames "
-            "(the paper reports 83.1% at its alpha = 0.2).",
+            (
+                f"Forecast objective |W^T v_g - v_tgt|^2: average decrease per substep "
+                f"{100 * tracked['objective_decrease']:.1f}% over {min(steps, 200)} frames "
+                "(the paper reports 83.1% at its alpha = 0.2)."
+            ),
         ]
     (out_dir / "contact.md").write_text("\n".join(lines) + "\n")
     _figure(rows, out_dir / "contact.png")

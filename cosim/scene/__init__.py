@@ -1,0 +1,98 @@
+"""The scene package: the YAML scene format, its loading and its validation.
+
+``from cosim.scene import Scene, load_scene, parse_scene`` is the public entry;
+the modules behind it:
+
+- ``schema``: the pydantic models, one per section of the YAML file;
+- ``messages``: pydantic's errors as ``key.path[i]: message`` lines;
+- ``checks``: what spans several keys (vector lengths against ``dim``, names, files);
+- ``loader``: ``load_scene`` / ``parse_scene``, which run the schema, then the checks;
+- ``particles``: the soft bodies sampled into particles with NumPy only (``cosim validate``);
+- ``shipped``: where the scenes shipped with cosim are (``scenes_dir``).
+
+Dependencies point one way: schema <- messages, checks <- loader. Nothing here imports
+Taichi or DART at module level; only a URDF skeleton's check reaches ``cosim.articulated``.
+
+The reference of every key is ``docs/scene-format.md``.
+"""
+
+from cosim.scene.loader import load_scene, parse_scene
+from cosim.scene.schema import (
+    ActionSpec,
+    ArticulatedSpec,
+    BodySpec,
+    BoundarySpec,
+    BoxShape,
+    ContactSpec,
+    ControlSpec,
+    CylinderShape,
+    ElasticMaterial,
+    GradientSpec,
+    GridSpec,
+    JointSceneSpec,
+    LinkSceneSpec,
+    LiquidMaterial,
+    LossSpec,
+    Material,
+    MeshShape,
+    MotionSegment,
+    MotionSpec,
+    MPMSpec,
+    OptimizeSpec,
+    OutputSpec,
+    PlacedShape,
+    PlasticMaterial,
+    Positive,
+    RegionSpec,
+    RigidBodySpec,
+    RigidShape,
+    RigidSpec,
+    Scene,
+    Shape,
+    SkeletonSceneSpec,
+    SphereShape,
+    Strict,
+    TimeSpec,
+    Vec,
+)
+
+__all__ = [
+    "ActionSpec",
+    "ArticulatedSpec",
+    "BodySpec",
+    "BoundarySpec",
+    "BoxShape",
+    "ContactSpec",
+    "ControlSpec",
+    "CylinderShape",
+    "ElasticMaterial",
+    "GradientSpec",
+    "GridSpec",
+    "JointSceneSpec",
+    "LinkSceneSpec",
+    "LiquidMaterial",
+    "LossSpec",
+    "MPMSpec",
+    "Material",
+    "MeshShape",
+    "MotionSegment",
+    "MotionSpec",
+    "OptimizeSpec",
+    "OutputSpec",
+    "PlacedShape",
+    "PlasticMaterial",
+    "Positive",
+    "RegionSpec",
+    "RigidBodySpec",
+    "RigidShape",
+    "RigidSpec",
+    "Scene",
+    "Shape",
+    "SkeletonSceneSpec",
+    "SphereShape",
+    "Strict",
+    "TimeSpec",
+    "Vec",
+    "load_scene",
+    "parse_scene",
+]

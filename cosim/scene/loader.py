@@ -1,0 +1,47 @@
+"""Reading a scene: YAML file -> schema -> checks that span several keys -> ``Scene``.
+
+Every problem raises ``SceneError`` with one line per problem, each naming the
+key path, e.g. ``mpm.bodies[1].material.E: must be > 0``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import yaml
+from pydantic import ValidationError
+
+from cosim.errors import SceneError
+from cosim.scene.checks import semantic_problems
+from cosim.scene.messages import format_errors
+from cosim.scene.schema import Scene
+
+
+def parse_scene(data: Any, source_dir: Path | str = ".", origin: str = "scene") -> Scene:
+    """Validate a scene given as Python data (the parsed YAML); ``source_dir`` anchors its relative paths."""
+    if not isinstance(data, dict):
+        raise SceneError(f"{origin}: the top level must be a mapping of keys, got {type(data).__name__}")
+    try:
+        scene = Scene.model_validate(data)
+    except ValidationError as exc:
+        raise SceneError(f"{origin}: invalid scene\n  " + "\n  ".join(format_errors(exc))) from None
+    scene.source_dir = Path(source_dir)
+    problems = semantic_problems(scene)
+    if problems:
+        raise SceneError(f"{origin}: invalid scene\n  " + "\n  ".join(problems))
+    return scene
+
+
+def load_scene(path: str | Path, overrides: dict | None = None) -> Scene:
+    """Read, parse and validate a YAML scene file; ``overrides`` replace top-level keys."""
+    path = Path(path)
+    if not path.is_file():
+        raise SceneError(f"scene file not found: {path}")
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        raise SceneError(f"{path}: not valid YAML: {exc}") from None
+    if isinstance(data, dict) and overrides:
+        data = {**data, **overrides}
+    return parse_scene(data, path.parent, origin=str(path))
