@@ -27,7 +27,7 @@ from importlib import import_module
 _ENTRY_POINTS = {
     "load_scene": "cosim.scene",
     "parse_scene": "cosim.scene",
-    "build_system": "cosim.simulation",
+    "build_system": "cosim.scene.build",
     "CoupledSystem": "cosim.system",
     "Objective": "cosim.adjoint.objective",
     "check_gradients": "cosim.adjoint.gradcheck",

@@ -86,7 +86,7 @@ def cmd_gradcheck(args) -> int:
     from cosim.adjoint.gradcheck import check_gradients
     from cosim.adjoint.objective import Objective
     from cosim.errors import GradientCheckError
-    from cosim.simulation import build_system
+    from cosim.scene.build import build_system
 
     scene = _load(args, precision="float64")
     steps = args.steps or min(scene.steps, 5)
@@ -123,7 +123,7 @@ def cmd_optimize(args) -> int:
     from cosim.adjoint.optimize import PARAM_BOUNDS, adam
     from cosim.errors import SceneError
     from cosim.run import Recorder
-    from cosim.simulation import build_system
+    from cosim.scene.build import build_system
 
     scene = _load(args, precision="float64")
     spec = scene.optimize

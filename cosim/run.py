@@ -112,7 +112,7 @@ def run_scene(
     """
     from tqdm import tqdm
 
-    from cosim.simulation import build_system
+    from cosim.scene.build import build_system
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

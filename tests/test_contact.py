@@ -11,7 +11,7 @@ from cosim.couplers.contact import ForecastContact, GridContact, ParticlePenalty
 from cosim.couplers.mpm_kinematic import MPMKinematicCoupler
 from cosim.couplers.sdf import primitive_distance, primitive_sdf
 from cosim.engines.kinematic import KinematicEngine, constant
-from cosim.simulation import build_system
+from cosim.scene.build import build_system
 from cosim.system import CoupledSystem
 
 DX = 1 / 32

@@ -8,7 +8,7 @@ from conftest import ROOT, make_scene
 from cosim.adjoint.gradcheck import check_gradients
 from cosim.adjoint.objective import Objective
 from cosim.errors import SceneError
-from cosim.simulation import build_system
+from cosim.scene.build import build_system
 
 MODELS = ["grid", "particle", "forecast"]
 
@@ -309,7 +309,7 @@ def test_a_urdf_arm_is_placed_in_the_y_up_world_with_a_hollow_bottle():
     """The Panda-like URDF: the base transform turns its z-up onto the scene's y-up (joint 2 sits
     0.333 m above the base), only the listed link is coupled, and the bottle's contact geometry
     is the placed glass: hollow along the bottle link's +z, walls negative."""
-    from cosim.articulated import build_articulated
+    from cosim.scene.articulated import build_articulated
 
     built = build_articulated(urdf_scene(), dx=1 / 96)
     engine = built.engine
@@ -323,7 +323,7 @@ def test_a_urdf_arm_is_placed_in_the_y_up_world_with_a_hollow_bottle():
 
 
 def test_a_typo_in_a_urdf_link_name_is_an_error():
-    from cosim.articulated import build_articulated
+    from cosim.scene.articulated import build_articulated
 
     with pytest.raises(SceneError, match=r"no links named \['botle'\]"):
         build_articulated(urdf_scene(couple=["botle"]), dx=1 / 96)
@@ -344,7 +344,7 @@ def test_the_real_panda_carries_the_bottle_where_our_arm_does():
     """Where the pybullet wheel is installed: the real Panda at our arm's joint angles puts its
     hand, hence the bottle placed on it, where our Panda-like URDF puts its bottle (1 mm)."""
     pytest.importorskip("pybullet_data")
-    from cosim.articulated import build_articulated
+    from cosim.scene.articulated import build_articulated
     from cosim.scene import load_scene
 
     real = build_articulated(load_scene(ROOT / "scenes/pour_franka_meshes.yaml"), dx=1 / 96)

@@ -14,7 +14,7 @@ from conftest import make_scene
 
 from cosim.adjoint.gradcheck import check_gradients
 from cosim.adjoint.objective import Objective
-from cosim.simulation import build_system
+from cosim.scene.build import build_system
 
 TOL = 1e-5
 

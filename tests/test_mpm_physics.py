@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from conftest import make_scene
 
-from cosim.simulation import build_system
+from cosim.scene.build import build_system
 
 G = 9.81
 

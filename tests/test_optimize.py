@@ -7,7 +7,7 @@ from conftest import make_scene, run_cli, scene_dict
 
 from cosim.adjoint.objective import Objective
 from cosim.adjoint.optimize import adam
-from cosim.simulation import build_system
+from cosim.scene.build import build_system
 
 
 def steering_scene(**extra):

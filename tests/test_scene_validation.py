@@ -94,7 +94,7 @@ def test_mesh_in_2d_is_rejected():
 
 
 def test_body_outside_grid_is_rejected_at_build():
-    from cosim.simulation import build_bodies
+    from cosim.scene.build import build_bodies
 
     scene = parse_scene(with_body(shape={"type": "box", "center": [0.05, 0.5], "size": [0.2, 0.2]}), ROOT)
     with pytest.raises(SceneError, match=r"mpm.bodies\[0\] \('block'\): \d+ particles lie outside"):
@@ -105,7 +105,7 @@ def test_validate_samples_the_particles_the_simulation_builds():
     """`cosim validate` samples without the MPM engine (cosim.scene.particles); it must find the very
     particles build_bodies does (same seed, same order: jitter draws from one generator) and the same misfit."""
     from cosim.scene.particles import body_positions
-    from cosim.simulation import build_bodies
+    from cosim.scene.build import build_bodies
 
     first = dict(scene_dict()["mpm"]["bodies"][0], jitter=0.4)
     second = dict(first, name="ball", shape={"type": "sphere", "center": [0.5, 0.2], "radius": 0.08})
@@ -123,7 +123,7 @@ def test_validate_samples_the_particles_the_simulation_builds():
 def test_non_watertight_mesh_is_rejected(tmp_path):
     import trimesh
 
-    from cosim.simulation import build_bodies
+    from cosim.scene.build import build_bodies
 
     box = trimesh.creation.box(extents=[0.2, 0.2, 0.2])
     open_box = trimesh.Trimesh(box.vertices, box.faces[:-2], process=False)  # drop one side
@@ -139,7 +139,7 @@ def test_mesh_sampling_fills_its_volume(tmp_path):
     """Particles x spacing^3 approximate the mesh volume (lattice error ~ surface x spacing)."""
     import trimesh
 
-    from cosim.simulation import build_bodies
+    from cosim.scene.build import build_bodies
 
     ball = trimesh.creation.icosphere(subdivisions=3, radius=0.15)
     ball.export(tmp_path / "ball.stl")
@@ -152,7 +152,7 @@ def test_mesh_sampling_fills_its_volume(tmp_path):
 
 
 def test_sampling_is_seeded():
-    from cosim.simulation import build_bodies
+    from cosim.scene.build import build_bodies
 
     a = build_bodies(
         make_scene(seed=3, mpm={**scene_dict()["mpm"], "bodies": [dict(scene_dict()["mpm"]["bodies"][0], jitter=0.4)]})

@@ -9,7 +9,7 @@ import pytest
 from conftest import make_scene, scene_dict
 
 from cosim.errors import SceneError, SimulationError
-from cosim.simulation import build_system
+from cosim.scene.build import build_system
 
 
 def block(**material):

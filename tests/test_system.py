@@ -6,7 +6,7 @@ from conftest import make_scene
 
 from cosim.adjoint.gradcheck import check_gradients
 from cosim.adjoint.objective import Objective
-from cosim.simulation import build_system
+from cosim.scene.build import build_system
 
 DX = 1 / 48
 
@@ -84,7 +84,7 @@ def _split_grid_contact(scene, GridContact):
     from cosim.couplers.mpm_kinematic import MPMKinematicCoupler
     from cosim.couplers.sdf import shape_sdf
     from cosim.engines.kinematic import KinematicEngine
-    from cosim.simulation import build_motion
+    from cosim.scene.build import build_motion
     from cosim.system import CoupledSystem
 
     rigid = scene.rigid

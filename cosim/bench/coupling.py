@@ -42,7 +42,7 @@ def _forward(scene, steps: int, repeat: int) -> list[dict]:
     """Per repetition: per-step times of the coupled step and its parts, one system reset each time."""
     import taichi as ti
 
-    from cosim.simulation import build_system
+    from cosim.scene.build import build_system
 
     sim = build_system(scene)
     sim.step()
@@ -78,7 +78,7 @@ def _backward(scene, steps: int, repeat: int) -> float:
     """Median backward / recorded forward time of a ``steps``-step rollout. One objective serves
     every repetition: a new one would recompile the 3D adjoint kernels (minutes each)."""
     from cosim.adjoint.objective import Objective
-    from cosim.simulation import build_system
+    from cosim.scene.build import build_system
 
     obj = Objective(build_system(scene, requires_grad=True, steps=steps))
     params = obj.initial_params()

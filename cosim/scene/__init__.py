@@ -8,10 +8,12 @@ the modules behind it:
 - ``checks``: what spans several keys (vector lengths against ``dim``, names, files);
 - ``loader``: ``load_scene`` / ``parse_scene``, which run the schema, then the checks;
 - ``particles``: the soft bodies sampled into particles with NumPy only (``cosim validate``);
-- ``shipped``: where the scenes shipped with cosim are (``scenes_dir``).
+- ``shipped``: where the scenes shipped with cosim and their assets are (``scenes_dir``, ``resolve_asset``);
+- ``build``: the scene made runnable, ``build_system(scene) -> CoupledSystem`` (only what it uses);
+- ``articulated``: DART skeletons, link SDFs and mass properties of the ``articulated:`` section.
 
 Dependencies point one way: schema <- messages, checks <- loader. Nothing here imports
-Taichi or DART at module level; only a URDF skeleton's check reaches ``cosim.articulated``.
+Taichi or DART at module level (``build`` and ``articulated`` import them when called).
 
 The reference of every key is ``docs/scene-format.md``.
 """

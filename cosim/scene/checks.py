@@ -12,6 +12,7 @@ import math
 
 from cosim.errors import SceneError
 from cosim.scene.schema import BoxShape, CylinderShape, MeshShape, Scene
+from cosim.scene.shipped import resolve_asset
 
 
 def semantic_problems(scene: Scene) -> list[str]:
@@ -211,9 +212,6 @@ def _urdf_problems(key: str, skel, scene: Scene) -> list[str]:
     problems = []
     if scene.dim != 3:
         problems.append(f"{key}.urdf: URDF skeletons are 3D; in 2D build the skeleton from links")
-    # cosim.articulated imports the SDF code (Taichi) and DART: only URDF scenes pay for it here
-    from cosim.articulated import resolve_asset
-
     try:
         path = resolve_asset(skel.urdf, scene.source_dir, f"{key}.urdf")
         if not path.is_file():

@@ -1,7 +1,7 @@
 """A scene's soft bodies as particle positions, without the MPM engine (so without Taichi).
 
 ``cosim validate`` uses it to count particles and to check that every body
-fits in the grid; ``cosim.simulation.build_bodies`` samples the same way (same
+fits in the grid; ``cosim.scene.build.build_bodies`` samples the same way (same
 seed, same body order) and adds the materials.
 """
 

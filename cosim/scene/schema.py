@@ -3,7 +3,7 @@
 One pydantic model per section; each validates its own keys (types, ranges,
 unknown keys). What spans several keys is checked in ``cosim.scene.checks``,
 and ``cosim.scene.loader`` runs both. The reference of every key is
-``docs/scene-format.md``; ``cosim.simulation`` builds the engines.
+``docs/scene-format.md``; ``cosim.scene.build`` builds the engines.
 """
 
 from __future__ import annotations

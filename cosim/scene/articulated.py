@@ -31,6 +31,7 @@ from cosim.couplers.sdf import (
 from cosim.engines import so3
 from cosim.engines.rigid_build import LinkSpec, ShapeSpec, SkeletonSpec
 from cosim.errors import SceneError
+from cosim.scene.shipped import resolve_asset
 
 
 @dataclass
@@ -163,24 +164,6 @@ def placed_shape_sdf(placed, spacing: float, padding: float) -> SDFGrid:
     size = primitive_size(shape)
     lo, hi = placed_box_bounds(primitive_extent(shape.type, 3, **size), R, t)
     return function_sdf(lambda p: primitive_distance(shape.type, (p - t) @ R, **size), lo, hi, spacing, padding)
-
-
-PYBULLET_DATA = "pybullet_data:"  # prefix of paths inside the optional pybullet wheel's data folder
-
-
-def resolve_asset(text: str, source_dir: Path, key: str) -> Path:
-    """A scene path: relative to the scene, or ``pybullet_data:sub/path`` inside the data folder of
-    the optional ``pybullet`` wheel (``pip install -e ".[panda]"``: the real Franka Panda meshes)."""
-    if not text.startswith(PYBULLET_DATA):
-        return (source_dir / text).resolve()
-    try:
-        import pybullet_data
-    except ImportError:
-        raise SceneError(
-            f"{key}: '{text}' needs the optional pybullet wheel: pip install -e \".[panda]\" "
-            "(or use our scenes/assets/panda_like arm, which needs nothing)"
-        ) from None
-    return Path(pybullet_data.getDataPath()) / text[len(PYBULLET_DATA) :]
 
 
 def _urdf_spec(skel, source_dir: Path, key: str) -> SkeletonSpec:

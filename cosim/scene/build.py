@@ -212,7 +212,7 @@ def build_manipulators(scene: Scene, mpm, stepping: Stepping, steps: int):
         couplers.append(coupler)
         sources.append(source)
     if scene.articulated is not None:
-        from cosim.articulated import action_sequence, build_articulated, link_shapes
+        from cosim.scene.articulated import action_sequence, build_articulated, link_shapes
         from cosim.couplers.mpm_rigid import MPMRigidCoupler
 
         articulated = build_articulated(scene, scene.dx)
