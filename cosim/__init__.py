@@ -34,7 +34,7 @@ _ENTRY_POINTS = {
     "run_scene": "cosim.run",
 }
 
-__all__ = sorted(_ENTRY_POINTS)
+__all__ = ["CoupledSystem", "Objective", "build_system", "check_gradients", "load_scene", "parse_scene", "run_scene"]
 
 
 def __getattr__(name: str):

@@ -104,7 +104,9 @@ def cmd_gradcheck(args) -> int:
             f"{r.param:>8} {r.direction:>4} {r.adjoint:>16.9e} {r.finite_difference:>16.9e} {r.relative_error:>10.2e}"
         )
     if all(r.adjoint == 0 and r.finite_difference == 0 for r in results):
-        print(f"warning: every gradient is zero over {steps} steps: the parameters do not reach the loss yet; use --steps")
+        print(
+            f"warning: every gradient is zero over {steps} steps: the parameters do not reach the loss yet; use --steps"
+        )
     worst = max(r.relative_error for r in results)
     tol = args.tolerance or scene.gradient.tolerance
     print(f"max relative error: {worst:.3e} (tolerance {tol:g})")

@@ -17,7 +17,7 @@ def gravity_potential(mass: np.ndarray, x: np.ndarray, gravity) -> float:
 
 def corotated_energy(F: np.ndarray, volume: float, mu: float, lam: float) -> float:
     """Fixed corotated strain energy sum V0 (mu |F - R|^2 + lam/2 (J - 1)^2)."""
-    U, sig, Vt = np.linalg.svd(F)
+    U, _sig, Vt = np.linalg.svd(F)
     R = U @ Vt
     J = np.linalg.det(F)
     psi = mu * np.sum((F - R) ** 2, axis=(1, 2)) + 0.5 * lam * (J - 1.0) ** 2

@@ -30,7 +30,7 @@ class Loss:
         self.weights = rng.standard_normal((len(self.sel), dim))
 
     @classmethod
-    def for_system(cls, system) -> "Loss":
+    def for_system(cls, system) -> Loss:
         """The loss of the scene ``system`` was built from."""
         scene = system.scene
         return cls(scene.loss, scene.dim, scene.seed, system.slices, system.mpm.mass, system.engines.get("dart"))

@@ -142,7 +142,7 @@ def write_preview(
     if path.suffix == ".mp4":
         try:
             imageio.mimsave(path, images, fps=fps, macro_block_size=1)
-        except Exception as exc:  # imageio raises a plain error when no ffmpeg backend exists
+        except (RuntimeError, ValueError, OSError) as exc:  # imageio's errors when no ffmpeg backend exists
             raise CosimError(f"cannot write {path}: {exc}; install imageio-ffmpeg or set output.preview: gif") from None
     else:
         imageio.mimsave(path, images, duration=1000.0 / fps, loop=0)

@@ -55,7 +55,12 @@ def make_scene(**overrides):
 def run_cli(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
     """Run `cosim ...` in a fresh process (its own Taichi start-up)."""
     return subprocess.run(
-        [sys.executable, "-m", "cosim.cli", *args], capture_output=True, text=True, cwd=cwd or ROOT, timeout=900
+        [sys.executable, "-m", "cosim.cli", *args],
+        capture_output=True,
+        text=True,
+        cwd=cwd or ROOT,
+        timeout=900,
+        check=False,
     )
 
 

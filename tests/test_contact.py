@@ -65,9 +65,7 @@ def build(
         ForecastContact(mpm, [rb], friction)
     else:
         ParticlePenalty(mpm, [rb], 100.0, friction)
-    sim = CoupledSystem(
-        mpm, [kinematic], [coupler], mpm_only.stepping, scene.gravity, mpm_only.domain, mpm_only.steps
-    )
+    sim = CoupledSystem(mpm, [kinematic], [coupler], mpm_only.stepping, scene.gravity, mpm_only.domain, mpm_only.steps)
     return sim, rb
 
 
@@ -80,7 +78,7 @@ def test_newtons_third_law_holds_to_round_off(model):
     """Impulse on the particles + impulse on the body = 0 in every substep (no gravity, no walls),
     so the particles' momentum change equals minus the summed body impulses, to round-off."""
     half = np.array([0.06, 0.2])
-    sim, rb = build([disc("ball", [0.35, 0.5], 0.08, [2.0, 0.3])], [half], [static([0.6, 0.5])], model=model)
+    sim, _rb = build([disc("ball", [0.35, 0.5], 0.08, [2.0, 0.3])], [half], [static([0.6, 0.5])], model=model)
     m = sim.mpm.mass[:, None]
     p0 = (m * sim.mpm.state()["v"]).sum(axis=0)
     body_impulse, angular = np.zeros(2), 0.0
@@ -170,7 +168,7 @@ def test_adjoint_through_grid_contact_matches_finite_differences(pushed):
     v0 = np.tile([-0.5, 0.1], (sim.mpm.n_particles, 1))
     rollout(sim, rb, v_body, v0, grad=False)
     assert np.abs(rb.reactions(4)["impulse"]).max() > 1e-4  # the last step is in contact
-    loss, g_body, g_v0 = rollout(sim, rb, v_body, v0, grad=True)
+    _loss, g_body, g_v0 = rollout(sim, rb, v_body, v0, grad=True)
     eps = 1e-6
     for d in (np.array([1.0, 0.0]), np.array([0.3, -1.0])):
         fd = (rollout(sim, rb, v_body + eps * d, v0, False)[0] - rollout(sim, rb, v_body - eps * d, v0, False)[0]) / (

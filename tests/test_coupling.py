@@ -178,9 +178,7 @@ def test_a_hinged_door_turns_by_the_angular_impulse_it_receives(model):
             }
         ],
     }
-    scene = coupled_scene(
-        [elastic("block", [0.45, 0.52], [0.12, 0.12], [2.0, 0.0], E=5e4)], [door], model, steps=80
-    )
+    scene = coupled_scene([elastic("block", [0.45, 0.52], [0.12, 0.12], [2.0, 0.0], E=5e4)], [door], model, steps=80)
     sim = build_system(scene)
     engine = sim.engines["dart"]
     inertia = engine.skeletons[0].getMassMatrix()[0, 0]
@@ -278,7 +276,9 @@ def test_bad_articulated_sections_name_the_key_and_the_fix(change, message):
 
 def test_material_starting_inside_a_rigid_link_is_refused():
     scene = coupled_scene(
-        [elastic("ball", [0.5, 0.5], [0.1, 0.1], [0.0, 0.0])], [free_box("box", [0.5, 0.5], [0.15, 0.15], 400.0)], "grid"
+        [elastic("ball", [0.5, 0.5], [0.1, 0.1], [0.0, 0.0])],
+        [free_box("box", [0.5, 0.5], [0.15, 0.15], 400.0)],
+        "grid",
     )
     with pytest.raises(SceneError, match="start more than dx/2 inside rigid body 'box/box'"):
         build_system(scene)
@@ -344,8 +344,8 @@ def test_the_real_panda_carries_the_bottle_where_our_arm_does():
     """Where the pybullet wheel is installed: the real Panda at our arm's joint angles puts its
     hand, hence the bottle placed on it, where our Panda-like URDF puts its bottle (1 mm)."""
     pytest.importorskip("pybullet_data")
-    from cosim.scene.articulated import build_articulated
     from cosim.scene import load_scene
+    from cosim.scene.articulated import build_articulated
 
     real = build_articulated(load_scene(ROOT / "scenes/pour_franka_meshes.yaml"), dx=1 / 96)
     ours = build_articulated(load_scene(ROOT / "scenes/pour_franka.yaml"), dx=1 / 96)
@@ -372,7 +372,10 @@ def test_coupler_pieces_match_central_differences():
     rng = np.random.default_rng(0)
     m, K, dt, eps = 2, 5, 1e-2, 1e-6
     b = BodyStates(
-        rng.normal(size=(m, 3)), Rotation.random(m, random_state=1).as_matrix(), rng.normal(size=(m, 3)), 3 * rng.normal(size=(m, 3))
+        rng.normal(size=(m, 3)),
+        Rotation.random(m, random_state=1).as_matrix(),
+        rng.normal(size=(m, 3)),
+        3 * rng.normal(size=(m, 3)),
     )
     G = BodyStates(*(rng.normal(size=(K, m) + shape) for shape in ((3,), (3, 3), (3,), (3,))))
     keys = ("pos", "R", "v", "w")
@@ -399,7 +402,8 @@ def test_coupler_pieces_match_central_differences():
             hi, lo = value.copy(), value.copy()
             hi[idx] += eps
             lo[idx] -= eps
-            def f(x):
+
+            def f(x, name=name):
                 a = {**args, name: x}
                 return np.sum(gW * average_wrench(a["J"], a["L"], a["pk"], a["p"], 0.3))
 

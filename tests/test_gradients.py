@@ -76,7 +76,7 @@ def test_plastic_body_yields_during_the_gradient_rollout(objective):
     """
     objective.rollout(objective.initial_params())
     F = objective.sim.mpm.state()["F"][objective.sim.slices["dough"]]
-    U, sig, Vt = np.linalg.svd(F)
+    _U, sig, Vt = np.linalg.svd(F)
     S = np.einsum("nji,nj,njk->nik", Vt, sig, Vt)
     strain = S - np.eye(2)
     dev = strain - np.trace(strain, axis1=1, axis2=2)[:, None, None] / 2 * np.eye(2)
@@ -95,7 +95,7 @@ def test_com_loss_gradient(objective):
     sim = objective.sim
     loss = Loss(scene.loss, scene.dim, scene.seed, sim.slices, sim.mpm.mass)
     state = sim.mpm.state()
-    value, grad = loss({"mpm": state})
+    _value, grad = loss({"mpm": state})
     d = np.random.default_rng(0).standard_normal(state["x"].shape)
     eps = 1e-6
 
@@ -113,7 +113,9 @@ def test_checkpointed_gradients_equal_full_storage():
     12 substeps (all states resident, no recompute), same dt: equal to round-off.
     """
     dt = 1e-3
-    checkpointed = Objective(build_system(three_material_scene(steps=4, substeps=3, frame_dt=3 * dt), requires_grad=True))
+    checkpointed = Objective(
+        build_system(three_material_scene(steps=4, substeps=3, frame_dt=3 * dt), requires_grad=True)
+    )
     full = Objective(build_system(three_material_scene(steps=1, substeps=12, frame_dt=12 * dt), requires_grad=True))
     assert checkpointed.sim.mpm.n_slots == 4 and full.sim.mpm.n_slots == 13
     pc, pf = checkpointed.initial_params(), full.initial_params()

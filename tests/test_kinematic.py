@@ -84,5 +84,5 @@ def test_point_velocity_is_the_rigid_motion_of_a_body_point(dim):
     m = constant(np.full(dim, 0.5), np.eye(dim), np.linspace(0.1, 0.3, dim), w)
     r_body = np.linspace(0.05, -0.08, dim)
     t, eps = 0.8, 1e-6
-    x = lambda tt: m.pose(tt)[0] + m.pose(tt)[1] @ r_body  # noqa: E731
+    x = lambda tt: m.pose(tt)[0] + m.pose(tt)[1] @ r_body
     assert np.allclose(m.point_velocity(t, x(t)), (x(t + eps) - x(t - eps)) / (2 * eps), atol=1e-7)

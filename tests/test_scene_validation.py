@@ -104,8 +104,8 @@ def test_body_outside_grid_is_rejected_at_build():
 def test_validate_samples_the_particles_the_simulation_builds():
     """`cosim validate` samples without the MPM engine (cosim.scene.particles); it must find the very
     particles build_bodies does (same seed, same order: jitter draws from one generator) and the same misfit."""
-    from cosim.scene.particles import body_positions
     from cosim.scene.build import build_bodies
+    from cosim.scene.particles import body_positions
 
     first = dict(scene_dict()["mpm"]["bodies"][0], jitter=0.4)
     second = dict(first, name="ball", shape={"type": "sphere", "center": [0.5, 0.2], "radius": 0.08})

@@ -50,7 +50,7 @@ def angle_deg(a, b):
 def test_sphere_distance_and_normal():
     """Smooth surface: trilinear error ~ h^2 / (8 R) << h / 2; normals within 3 degrees."""
     grid = primitive_sdf("sphere", 3, H, 3 * H, radius=0.1)
-    fn = lambda p: primitive_distance("sphere", p, radius=0.1)  # noqa: E731
+    fn = lambda p: primitive_distance("sphere", p, radius=0.1)
     pts = band_points(fn, 3, np.full(3, 0.1), 2 * H)
     dist, nrm = taichi_lookup(grid, pts)
     assert np.abs(dist - fn(pts)).max() <= 0.5 * H
@@ -66,7 +66,7 @@ def test_box_distance_and_normals_at_faces_edges_and_corners():
     node gradients) and 20 from half a cell out (measured 16.6); along the diagonal off a corner."""
     half = np.array([0.1, 0.06, 0.08])
     grid = primitive_sdf("box", 3, H, 3 * H, half=half)
-    fn = lambda p: primitive_distance("box", p, half=half)  # noqa: E731
+    fn = lambda p: primitive_distance("box", p, half=half)
     pts = band_points(fn, 3, half, 2 * H, n=8000)
     dist, nrm = taichi_lookup(grid, pts)
     true_d = fn(pts)
@@ -95,7 +95,7 @@ def test_box_distance_and_normals_at_faces_edges_and_corners():
 )
 def test_primitive_grids_reproduce_their_closed_form(kind, dim, size):
     grid = primitive_sdf(kind, dim, H, 3 * H, **size)
-    fn = lambda p: primitive_distance(kind, p, **size)  # noqa: E731
+    fn = lambda p: primitive_distance(kind, p, **size)
     ext = grid.origin * -1 - 3 * H
     pts = band_points(fn, dim, ext, 2 * H)
     dist, _ = grid.sample(pts)

@@ -36,7 +36,12 @@ def two_box_scene(model, steps, **contact):
     return make_scene(
         steps=steps,
         time={"frame_dt": 2e-3},
-        mpm={"grid": {"cells": 48}, "boundary": {"type": "none"}, "gravity": [0.0, 0.0], "bodies": [thin_blob(DX, [1.0, 0.0])]},
+        mpm={
+            "grid": {"cells": 48},
+            "boundary": {"type": "none"},
+            "gravity": [0.0, 0.0],
+            "bodies": [thin_blob(DX, [1.0, 0.0])],
+        },
         rigid={"bodies": [static_box("hit", 0.5 + gap), static_box("left", 0.5 - gap)]},
         contact={"model": model, **contact},
     )
@@ -167,7 +172,7 @@ def test_gradients_through_two_skeletons_and_a_kinematic_body_match_central_diff
     obj = Objective(build_system(n_engine_scene(), requires_grad=True))
     assert list(obj.system.engines) == ["kinematic", "dart"]
     params = obj.initial_params()
-    value, grads = obj.evaluate(params, grad=True)
+    _value, grads = obj.evaluate(params, grad=True)
     reactions = obj.system.last.outputs["reactions"]
     touched = [np.abs(reactions[s]["impulse"]).sum(axis=(0, 2)) for s in ("kinematic", "dart")]
     assert np.all(np.concatenate(touched) > 0), touched  # plate, right box, left box all in contact

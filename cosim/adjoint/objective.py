@@ -10,7 +10,7 @@ sequence ``action`` (segments, action size), each segment held ``hold`` macro st
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
@@ -35,7 +35,9 @@ class Objective:
         for e in engines.values():
             for p in e.parameters():
                 if p.name in self.parameters:
-                    raise ValueError(f"engines '{self.parameters[p.name].engine}' and '{p.engine}' both declare '{p.name}'")
+                    raise ValueError(
+                        f"engines '{self.parameters[p.name].engine}' and '{p.engine}' both declare '{p.name}'"
+                    )
                 self.parameters[p.name] = p
         if loss is None:
             from cosim.losses import Loss
@@ -106,7 +108,7 @@ class Objective:
             return value, None
         g = self.tape.backward(self.system.vjp, dstate)
         grads = {}
-        for name in params:
+        for name, value in params.items():
             p = self.parameters[name]
             if p.kind == "state":
                 grads[name] = g.state0[p.engine][p.key]
@@ -116,7 +118,7 @@ class Objective:
                 grads[name] = np.stack([gi[self.system.ctrl_index] for gi in g.impulse])
             else:
                 plan = self.system.plans[p.engine]
-                grads[name] = np.zeros_like(params[name])
+                grads[name] = np.zeros_like(value)
                 for n, ga in enumerate(g.action[p.engine]):
-                    grads[name][plan.segment(n, len(params[name]))] += ga
+                    grads[name][plan.segment(n, len(value))] += ga
         return value, grads

@@ -13,11 +13,10 @@ O(S N + K N), never O(S K N).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
-
 
 
 @dataclass
@@ -67,4 +66,3 @@ class Tape:
             for key, g in out["material"].items():
                 material[key] = material.get(key, 0.0) + g
         return Gradients(state0=grad_state, impulse=impulses, action=actions, material=material)
-

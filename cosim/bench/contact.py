@@ -62,8 +62,8 @@ class ContainerRun:
 
     def __init__(self, model: str, stiffness: float | None, thickness: float, steps: int, track: bool = False):
         from cosim.scene import load_scene
-        from cosim.scene.shipped import scenes_dir
         from cosim.scene.build import build_system
+        from cosim.scene.shipped import scenes_dir
 
         contact = {"model": model} | ({"stiffness": stiffness} if stiffness else {})
         scene = load_scene(scenes_dir() / "shake_container_2d.yaml", {"steps": steps, "contact": contact})

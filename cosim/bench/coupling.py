@@ -129,8 +129,10 @@ def run_coupling_bench(out_dir: Path, quick: bool = False, repeat: int = 3) -> i
         writer.writeheader()
         writer.writerows(rows)
     lines = [
-        f"Coupling benchmark on {hardware_line()}; float64; medians of {repeat} runs; forward over {steps} "
-        f"macro steps, backward/forward over {grad_steps}",
+        (
+            f"Coupling benchmark on {hardware_line()}; float64; medians of {repeat} runs; forward over {steps} "
+            f"macro steps, backward/forward over {grad_steps}"
+        ),
         "",
         "| scene | coupled step ms | MPM ms | DART ms | coupler ms | coupled / MPM | coupled / DART | backward / forward |",
         "|---|---|---|---|---|---|---|---|",

@@ -19,8 +19,8 @@ source (``RigidBoundaries``), the cloth's traced distance will be another.
 import numpy as np
 import taichi as ti
 
-from cosim.engines.contract import BOUNDARY_KEYS, REACTION_KEYS
 from cosim.couplers.sdf import SDFField, SDFGrid
+from cosim.engines.contract import BOUNDARY_KEYS, REACTION_KEYS
 
 
 @ti.data_oriented

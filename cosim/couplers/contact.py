@@ -205,7 +205,7 @@ class ForecastContact:
             for source in ti.static(self.sources):
                 for b in ti.static(range(source.n)):
                     nearest = ti.min(nearest, source.distance(s, b, x))
-            base, fx, w = e.stencil(x)
+            base, _fx, w = e.stencil(x)
             v_init = ti.Vector.zero(float, e.dim)
             if nearest < self.threshold:
                 for offset in ti.static(ti.grouped(ti.ndrange(*([3] * e.dim)))):
@@ -256,7 +256,7 @@ class ForecastContact:
         before, after = 0.0, 0.0
         for p in range(e.n_particles):
             if self.constrained[g, p]:
-                base, fx, w = e.stencil(e.x[src, p])
+                base, _fx, w = e.stencil(e.x[src, p])
                 v = ti.Vector.zero(float, e.dim)
                 for offset in ti.static(ti.grouped(ti.ndrange(*([3] * e.dim)))):
                     weight = e.stencil_weight(w, offset)

@@ -206,7 +206,7 @@ class KinematicEngine:
         return {"steps": np.array([float(self._steps)])}
 
     def set_state(self, state: dict[str, np.ndarray]) -> None:
-        self._steps = int(round(float(state["steps"][0])))
+        self._steps = round(float(state["steps"][0]))
 
     def step(self, inputs: dict) -> tuple[dict, None]:
         """Advance one frame; ``inputs`` (action, forces) have no effect on a prescribed motion."""

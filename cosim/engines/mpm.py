@@ -19,7 +19,7 @@ import taichi as ti
 
 from cosim.engines.mpm_kernels import STATE_KEYS, MPMConfig, MPMKernels, ParticleBody
 
-__all__ = ["MPMConfig", "MPMEngine", "MPMRecord", "ParticleBody", "STATE_KEYS"]
+__all__ = ["STATE_KEYS", "MPMConfig", "MPMEngine", "MPMRecord", "ParticleBody"]
 
 
 @dataclass

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 import taichi as ti
 
-from cosim.engines.materials import MATERIALS, lame_parameters
+from cosim.engines.materials import MATERIALS
 
 
 @dataclass
@@ -385,4 +385,3 @@ class MPMKernels:
             self._stress.grad(self.materials[b], b, lo, hi, s, s, dt)
         for hook in reversed(self.particle_hooks):
             hook.apply_grad(s, s, s, dt)
-

@@ -187,7 +187,6 @@ class RigidEngine:
             skel.setPositions(s[o[k] : o[k + 1]])
             skel.setVelocities(s[n + o[k] : n + o[k + 1]])
 
-
     # ------------------------------------------------------------------------------------- the contract
 
     name = "dart"

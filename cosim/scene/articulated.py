@@ -249,7 +249,5 @@ def action_sequence(scene, action_size: int, n_segments: int) -> np.ndarray:
 
 def link_shapes(scene, names: list[str]) -> list:
     """The scene shape of each coupled body "skeleton/link" (None for URDF links)."""
-    shapes = {
-        f"{skel.name}/{link.name}": link.shape for skel in scene.articulated.skeletons for link in skel.links
-    }
+    shapes = {f"{skel.name}/{link.name}": link.shape for skel in scene.articulated.skeletons for link in skel.links}
     return [shapes.get(name) for name in names]

@@ -15,7 +15,8 @@ import numpy as np
 from cosim.engines import so3
 from cosim.errors import SceneError
 from cosim.scene.schema import Scene
-from cosim.system import ActionPlan, CoupledSystem, Control, Stepping
+from cosim.system import ActionPlan, Control, CoupledSystem, Stepping
+
 
 def build_bodies(scene: Scene):
     """Sample every body of the scene into an ``mpm.ParticleBody``."""
@@ -212,8 +213,8 @@ def build_manipulators(scene: Scene, mpm, stepping: Stepping, steps: int):
         couplers.append(coupler)
         sources.append(source)
     if scene.articulated is not None:
-        from cosim.scene.articulated import action_sequence, build_articulated, link_shapes
         from cosim.couplers.mpm_rigid import MPMRigidCoupler
+        from cosim.scene.articulated import action_sequence, build_articulated, link_shapes
 
         articulated = build_articulated(scene, scene.dx)
         engine = articulated.engine
