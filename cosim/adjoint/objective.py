@@ -108,7 +108,7 @@ class Objective:
             return value, None
         g = self.tape.backward(self.system.vjp, dstate)
         grads = {}
-        for name, value in params.items():
+        for name, param_value in params.items():
             p = self.parameters[name]
             if p.kind == "state":
                 grads[name] = g.state0[p.engine][p.key]
@@ -118,7 +118,7 @@ class Objective:
                 grads[name] = np.stack([gi[self.system.ctrl_index] for gi in g.impulse])
             else:
                 plan = self.system.plans[p.engine]
-                grads[name] = np.zeros_like(value)
+                grads[name] = np.zeros_like(param_value)
                 for n, ga in enumerate(g.action[p.engine]):
-                    grads[name][plan.segment(n, len(value))] += ga
+                    grads[name][plan.segment(n, len(param_value))] += ga
         return value, grads
