@@ -101,25 +101,6 @@ def test_body_outside_grid_is_rejected_at_build():
         build_bodies(scene)
 
 
-def test_validate_samples_the_particles_the_simulation_builds():
-    """`cosim validate` samples without the MPM engine (cosim.scene.particles); it must find the very
-    particles build_bodies does (same seed, same order: jitter draws from one generator) and the same misfit."""
-    from cosim.scene.build import build_bodies
-    from cosim.scene.particles import body_positions
-
-    first = dict(scene_dict()["mpm"]["bodies"][0], jitter=0.4)
-    second = dict(first, name="ball", shape={"type": "sphere", "center": [0.5, 0.2], "radius": 0.08})
-    scene = make_scene(seed=7, mpm={**scene_dict()["mpm"], "bodies": [first, second]})
-    built = build_bodies(scene)
-    sampled = body_positions(scene)
-    assert len(sampled) == len(built) == 2
-    for pts, body in zip(sampled, built):
-        assert np.array_equal(pts, body.positions)
-    outside = parse_scene(with_body(shape={"type": "box", "center": [0.05, 0.5], "size": [0.2, 0.2]}), ROOT)
-    with pytest.raises(SceneError, match=r"mpm.bodies\[0\] \('block'\): \d+ particles lie outside"):
-        body_positions(outside)
-
-
 def test_non_watertight_mesh_is_rejected(tmp_path):
     import trimesh
 

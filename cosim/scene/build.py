@@ -14,29 +14,18 @@ import numpy as np
 
 from cosim.engines import so3
 from cosim.errors import SceneError
+from cosim.scene.particles import body_positions
 from cosim.scene.schema import Scene
 from cosim.system import ActionPlan, Control, CoupledSystem, Stepping
 
 
 def build_bodies(scene: Scene):
-    """Sample every body of the scene into an ``mpm.ParticleBody``."""
+    """Every body of the scene as an ``mpm.ParticleBody``: particles from ``body_positions``, with material."""
     from cosim.engines.mpm import ParticleBody
-    from cosim.sampling import sample_shape
 
-    rng = np.random.default_rng(scene.seed)
     bodies = []
-    for i, spec in enumerate(scene.mpm.bodies):
+    for spec, pts in zip(scene.mpm.bodies, body_positions(scene)):
         spacing = spec.spacing or 0.5 * scene.dx
-        key = f"mpm.bodies[{i}].shape"
-        pts = sample_shape(spec.shape, scene.dim, spacing, spec.jitter, rng, key, scene.source_dir)
-        domain = np.asarray(scene.cells) * scene.dx
-        margin = (scene.mpm.boundary.thickness if scene.mpm.boundary.type != "none" else 2) * scene.dx
-        outside = np.any((pts < margin) | (pts > domain - margin), axis=1)
-        if outside.any():
-            raise SceneError(
-                f"mpm.bodies[{i}] ('{spec.name}'): {int(outside.sum())} particles lie outside the usable grid "
-                f"[{margin:g}, {domain.tolist()} - {margin:g}] m (walls/margin of the domain); move or shrink the shape"
-            )
         vel = np.zeros_like(pts) + (np.asarray(spec.velocity) if spec.velocity is not None else 0.0)
         m = spec.material
         deformation = hydrostatic_deformation(pts, spacing, m, scene.gravity) if spec.hydrostatic else None
