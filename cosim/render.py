@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from cosim.engines import so3
 from cosim.errors import CosimError
 
 PALETTE = np.array(
@@ -38,9 +39,7 @@ class Camera:
         self.domain = domain
         if self.dim == 3:
             a, e = np.radians(azimuth), np.radians(elevation)
-            rot_y = np.array([[np.cos(a), 0, -np.sin(a)], [0, 1, 0], [np.sin(a), 0, np.cos(a)]])
-            rot_x = np.array([[1, 0, 0], [0, np.cos(e), -np.sin(e)], [0, np.sin(e), np.cos(e)]])
-            self.rot = rot_x @ rot_y
+            self.rot = so3.about_axis(e, 0) @ so3.about_axis(-a, 1)
             corners = np.array(np.meshgrid(*[[0.0, s] for s in domain], indexing="ij")).reshape(3, -1).T
             view = (corners - domain / 2) @ self.rot.T
         else:

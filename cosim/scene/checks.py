@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 
+from cosim.engines.shapes import RIGID_SHAPE_KINDS, required_keys
 from cosim.errors import SceneError
 from cosim.scene.schema import BoxShape, CylinderShape, MeshShape, Scene
 from cosim.scene.shipped import resolve_asset
@@ -93,15 +94,7 @@ def semantic_problems(scene: Scene) -> list[str]:
     return problems
 
 
-_SHAPE_NEEDS = {
-    "box": ("size",),
-    "sphere": ("radius",),
-    "cylinder": ("radius", "height"),
-    "capsule": ("radius", "height"),
-    "glass": ("radius", "height", "thickness"),
-    "ring": ("radius", "thickness"),
-    "mesh": ("file",),
-}
+_SHAPE_NEEDS = {kind: required_keys(kind) for kind in RIGID_SHAPE_KINDS}  # sizes, or the mesh file
 
 
 def rigid_problems(scene: Scene) -> list[str]:

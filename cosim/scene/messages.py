@@ -11,6 +11,8 @@ from typing import Any
 
 from pydantic import BaseModel, ValidationError
 
+from cosim.engines.shapes import PARTICLE_SHAPE_KINDS
+
 from cosim.scene.schema import (
     BoxShape,
     CylinderShape,
@@ -22,7 +24,7 @@ from cosim.scene.schema import (
     SphereShape,
 )
 
-_TAGS = {"elastic", "plastic", "liquid", "box", "sphere", "cylinder", "mesh"}
+_TAGS = {"elastic", "plastic", "liquid", *PARTICLE_SHAPE_KINDS}  # union tags pydantic puts in key paths
 
 
 def _path(loc: tuple) -> str:

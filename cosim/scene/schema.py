@@ -13,6 +13,8 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
 
+from cosim.engines.shapes import RIGID_SHAPE_KINDS
+
 Vec = list[float]
 Positive = Annotated[float, Field(gt=0)]
 
@@ -175,7 +177,7 @@ class RigidShape(Strict):
     """A rigid body's shape in its own frame (centred at the body origin; y is the axis of
     cylinders, capsules and glasses, a glass opens towards +y). ``mesh``: a watertight file."""
 
-    type: Literal["box", "sphere", "cylinder", "capsule", "glass", "ring", "mesh"]
+    type: Literal[RIGID_SHAPE_KINDS]  # cosim.engines.shapes: one vocabulary for scenes, SDFs and DART
     size: list[Positive] | None = None  # box: full extents
     radius: Positive | None = None
     height: Positive | None = None
