@@ -12,7 +12,6 @@ from typing import Any
 from pydantic import BaseModel, ValidationError
 
 from cosim.engines.shapes import PARTICLE_SHAPE_KINDS
-
 from cosim.scene.schema import (
     BoxShape,
     CylinderShape,
