@@ -67,35 +67,34 @@ def test_default_scene_preview_shows_the_body_moving(tmp_path):
     assert rows_last.mean() > rows_first.mean() + 5  # it fell: lower in the picture
 
 
-def test_run_without_rigid_bodies_imports_neither_dartpy_nor_cloth(tmp_path):
+def cli_in_fresh_process(args: list[str], forbidden: str) -> subprocess.CompletedProcess:
+    """Run the CLI with ``args`` in a fresh interpreter and fail if a module matching ``forbidden``
+    (a Python expression in ``m``, a module name) was imported."""
     code = (
         "import sys\n"
         "from cosim.cli import main\n"
-        f"assert main(['run', '--steps', '2', '--out', r'{tmp_path}', '--quiet']) == 0\n"
-        "bad = [m for m in sys.modules if m.startswith('dartpy') or 'cloth' in m]\n"
+        f"assert main({args!r}) == 0\n"
+        f"bad = [m for m in sys.modules if {forbidden}]\n"
         "assert not bad, bad\n"
     )
     res = subprocess.run(
         [sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=600, check=False
     )
     assert res.returncode == 0, res.stderr
+    return res
 
 
-@pytest.mark.parametrize("scene", ["shake_container_2d", "pour_water"])
+def test_run_without_rigid_bodies_imports_neither_dartpy_nor_cloth(tmp_path):
+    cli_in_fresh_process(
+        ["run", "--steps", "2", "--out", str(tmp_path), "--quiet"], "m.startswith('dartpy') or 'cloth' in m"
+    )
+
+
+@pytest.mark.parametrize("scene", ["shake_container_2d", "pour_water", "pour_franka"])
 def test_validate_imports_neither_taichi_nor_dartpy(scene):
     """Validating (schema, checks, particle sampling) needs neither engine: kinematic rigid bodies
-    (shake_container_2d) and DART links built from primitives (pour_water)."""
-    code = (
-        "import sys\n"
-        "from cosim.cli import main\n"
-        f"assert main(['validate', '{scene}']) == 0\n"
-        "bad = [m for m in sys.modules if m.split('.')[0] in ('taichi', 'dartpy')]\n"
-        "assert not bad, bad\n"
-    )
-    res = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=600, check=False
-    )
-    assert res.returncode == 0, res.stderr
+    (shake_container_2d), DART links built from primitives (pour_water) and a URDF arm (pour_franka)."""
+    res = cli_in_fresh_process(["validate", scene], "m.split('.')[0] in ('taichi', 'dartpy')")
     assert f"{scene}: valid" in res.stdout
 
 

@@ -2,6 +2,7 @@
 chained contact hooks, and gradients through all of it against central differences (float64)."""
 
 import numpy as np
+import pytest
 from conftest import make_scene
 
 from cosim.adjoint.gradcheck import check_gradients
@@ -181,3 +182,20 @@ def test_gradients_through_two_skeletons_and_a_kinematic_body_match_central_diff
     results = check_gradients(obj.evaluate, params, ["action", "impulse"], obj.natural_scales(), 2)
     for r in results:
         assert abs(r.finite_difference) > 0 and r.relative_error < 1e-5, r
+
+
+def test_engines_and_couplers_keep_the_contract_and_refuse_what_they_cannot_honour():
+    """The adapters a scene builds satisfy the contract's protocols; a gradient asked of an engine
+    built without one, a missing boundary and an action for a prescribed motion are refused by name."""
+    from cosim.engines.contract import Coupler, Engine
+
+    sim = build_system(two_box_scene("grid", 2))
+    assert all(isinstance(e, Engine) for e in [sim.mpm, *sim.engines.values()])
+    assert all(isinstance(c, Coupler) for c in sim.couplers)
+    record = sim.step()
+    with pytest.raises(NotImplementedError, match=r"MPMEngine\.vjp"):
+        sim.mpm.vjp(record.mpm, {"state": sim.mpm.state()})
+    with pytest.raises(ValueError, match=r"no boundary states for sources \['kinematic'\]"):
+        sim.mpm.step({"dt": 1e-3, "substeps": 1})
+    with pytest.raises(ValueError, match="kinematic bodies take no action"):
+        sim.engines["kinematic"].step({"action": np.ones(2)})
