@@ -102,6 +102,8 @@ class CoupledSystem:
         steps: int,
         controls: list[Control] | None = None,
         plans: dict[str, ActionPlan] | None = None,
+        scene=None,
+        rigid=None,
     ):
         self.mpm = mpm
         self.engines = {e.name: e for e in engines}
@@ -123,8 +125,8 @@ class CoupledSystem:
         self.max_cfl = 0.0
         self.last = None  # the record of the last step
         self.timings: dict[str, float] | None = None  # seconds per part when a benchmark sets a dict
-        self.scene = None  # the scene it was built from (set by the builder; losses and reports read it)
-        self.rigid = None  # cosim.couplers.rigid_view.RigidBodies of a scene with rigid bodies
+        self.scene = scene  # the scene it was built from, if any (the default loss and reports read it)
+        self.rigid = rigid  # cosim.couplers.rigid_view.RigidBodies: names, poses, counts of the rigid bodies
         self.initial = self.state()
 
     # ------------------------------------------------------------ state of every engine

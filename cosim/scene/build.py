@@ -9,6 +9,7 @@ its coupler for the links the MPM sees; one contact model serves every boundary 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -132,14 +133,17 @@ def build_system(scene: Scene, requires_grad: bool = False, steps: int | None = 
     )
     mpm = MPMEngine(cfg, bodies)
     controls = build_controls(scene, mpm.body_slices(), mpm.state()["x"])
-    engines, couplers, plans, rigid = build_manipulators(scene, mpm, stepping, steps)
-    domain = np.asarray(scene.cells) * scene.dx
-    system = CoupledSystem(mpm, engines, couplers, stepping, scene.gravity, domain, steps, controls, plans)
-    system.scene = scene  # what it was built from: losses and reports read it
-    system.rigid = rigid
-    if rigid is not None:
+    parts = build_manipulators(scene, mpm, stepping)
+    rigid = None
+    if parts.engines:
+        from cosim.couplers.rigid_view import RigidBodies
+
+        rigid = RigidBodies(parts.names, parts.shapes, parts.grids, parts.kinematic, parts.dart_coupler, scene.dim)
         _check_start_outside_rigid(rigid, mpm.state()["x"], scene.dx)
-    return system
+    domain = np.asarray(scene.cells) * scene.dx
+    return CoupledSystem(
+        mpm, parts.engines, parts.couplers, stepping, scene.gravity, domain, steps, controls, parts.plans, scene, rigid
+    )
 
 
 def build_stepping(scene: Scene, bodies: list, requires_grad: bool, steps: int) -> Stepping:
@@ -167,64 +171,91 @@ def build_stepping(scene: Scene, bodies: list, requires_grad: bool, steps: int) 
     return Stepping(frame_dt, scene.time.cfl, scene.time.max_substeps, fixed or 0, grad_substeps, requires_grad, wave)
 
 
-def build_manipulators(scene: Scene, mpm, stepping: Stepping, steps: int):
-    """Engines, couplers and action plans of the scene's rigid bodies: the kinematic ones
-    (``rigid:``) first, then the coupled links of DART skeletons (``articulated:``), each
-    engine with its own boundary source under one contact model."""
-    from cosim.couplers.boundary import RigidBoundaries
-    from cosim.couplers.contact import attach_contact
-    from cosim.couplers.rigid_view import RigidBodies
-    from cosim.couplers.sdf import shape_sdf
+@dataclass
+class Manipulators:
+    """What the scene's rigid bodies add to the system, collected engine by engine."""
 
-    engines, couplers, plans, sources = [], [], {}, []
-    names, shapes, grids = [], [], []
-    slots = max(scene.time.max_substeps, stepping.grad_substeps)
-    grad = stepping.requires_grad
-    kinematic = dart_coupler = None
-    if scene.rigid is not None and scene.rigid.bodies:
-        from cosim.couplers.mpm_kinematic import MPMKinematicCoupler
-        from cosim.engines.kinematic import KinematicEngine
+    engines: list = field(default_factory=list)
+    couplers: list = field(default_factory=list)
+    plans: dict = field(default_factory=dict)
+    sources: list = field(default_factory=list)  # boundary sources, for the contact model
+    names: list = field(default_factory=list)  # rigid bodies the MPM sees, in source order
+    shapes: list = field(default_factory=list)
+    grids: list = field(default_factory=list)
+    kinematic: object = None
+    dart_coupler: object = None
 
-        motions, kin_grids = [], []
-        for i, spec in enumerate(scene.rigid.bodies):
-            spacing = spec.sdf_spacing or 0.5 * scene.dx
-            key = f"rigid.bodies[{i}].shape"
-            kin_grids.append(shape_sdf(spec.shape, scene.dim, spacing, 3 * scene.dx, scene.source_dir, key))
-            motions.append(build_motion(spec, scene.dim))
-            names.append(spec.name)
-            shapes.append(spec.shape)
-        grids += kin_grids
-        kinematic = KinematicEngine(motions, names[:], scene.time.frame_dt)
-        coupler = MPMKinematicCoupler(kinematic)
-        source = RigidBoundaries(kin_grids, scene.dim, slots, requires_grad=grad)
+    def couple(self, mpm, coupler, grids: list, dim: int, slots: int, grad: bool) -> None:
+        """Attach ``coupler``'s boundary source (``grids``: one SDF per body) to the MPM."""
+        from cosim.couplers.boundary import RigidBoundaries
+
+        source = RigidBoundaries(grids, dim, slots, requires_grad=grad)
         mpm.attach_boundary(coupler.source, source)
-        engines.append(kinematic)
-        couplers.append(coupler)
-        sources.append(source)
-    if scene.articulated is not None:
-        from cosim.couplers.mpm_rigid import MPMRigidCoupler
-        from cosim.scene.articulated import action_sequence, build_articulated, link_shapes
+        self.couplers.append(coupler)
+        self.sources.append(source)
+        self.grids += grids
 
-        articulated = build_articulated(scene, scene.dx)
-        engine = articulated.engine
-        engines.append(engine)
-        if engine.action_size:
-            plans[engine.name] = ActionPlan(
-                action_sequence(scene, engine.action_size, articulated.n_segments), articulated.hold
-            )
-        if articulated.coupled:  # a skeleton the MPM never sees needs no coupler
-            dart_coupler = MPMRigidCoupler(engine, articulated.coupled, scene.dim)
-            source = RigidBoundaries(articulated.grids, scene.dim, slots, requires_grad=grad)
-            mpm.attach_boundary(dart_coupler.source, source)
-            couplers.append(dart_coupler)
-            sources.append(source)
-            names += articulated.names
-            shapes += link_shapes(scene, articulated.names)
-            grids += articulated.grids
-    if sources:  # with nothing the MPM sees, no contact hook
-        attach_contact(mpm, sources, scene.contact)
-    rigid = RigidBodies(names, shapes, grids, kinematic, dart_coupler, scene.dim) if engines else None
-    return engines, couplers, plans, rigid
+
+def build_manipulators(scene: Scene, mpm, stepping: Stepping) -> Manipulators:
+    """The engines, couplers and action plans of the scene's rigid bodies: the kinematic ones
+    (``rigid:``) first, then the coupled links of DART skeletons (``articulated:``), each
+    engine with its own boundary source, all under the scene's one contact model."""
+    from cosim.couplers.contact import attach_contact
+
+    out = Manipulators()
+    slots = max(scene.time.max_substeps, stepping.grad_substeps)
+    if scene.rigid is not None and scene.rigid.bodies:
+        _add_kinematic(scene, mpm, out, slots, stepping.requires_grad)
+    if scene.articulated is not None:
+        _add_articulated(scene, mpm, out, slots, stepping.requires_grad)
+    if out.sources:  # with nothing the MPM sees, no contact hook
+        attach_contact(mpm, out.sources, scene.contact)
+    return out
+
+
+def _add_kinematic(scene: Scene, mpm, out: Manipulators, slots: int, grad: bool) -> None:
+    """Prescribed motions (``rigid:``) as a kinematic engine and its coupler."""
+    from cosim.couplers.mpm_kinematic import MPMKinematicCoupler
+    from cosim.couplers.sdf import shape_sdf
+    from cosim.engines.kinematic import KinematicEngine
+
+    specs = scene.rigid.bodies
+    grids = [
+        shape_sdf(
+            spec.shape,
+            scene.dim,
+            spec.sdf_spacing or 0.5 * scene.dx,
+            3 * scene.dx,
+            scene.source_dir,
+            f"rigid.bodies[{i}].shape",
+        )
+        for i, spec in enumerate(specs)
+    ]
+    motions = [build_motion(spec, scene.dim) for spec in specs]
+    out.kinematic = KinematicEngine(motions, [spec.name for spec in specs], scene.time.frame_dt)
+    out.engines.append(out.kinematic)
+    out.couple(mpm, MPMKinematicCoupler(out.kinematic), grids, scene.dim, slots, grad)
+    out.names += [spec.name for spec in specs]
+    out.shapes += [spec.shape for spec in specs]
+
+
+def _add_articulated(scene: Scene, mpm, out: Manipulators, slots: int, grad: bool) -> None:
+    """DART skeletons (``articulated:``): the engine, its action plan and, for the links the MPM
+    sees, the coupler (a skeleton the MPM never sees needs none)."""
+    from cosim.couplers.mpm_rigid import MPMRigidCoupler
+    from cosim.scene.articulated import action_sequence, build_articulated, link_shapes
+
+    articulated = build_articulated(scene, scene.dx)
+    engine = articulated.engine
+    out.engines.append(engine)
+    if engine.action_size:
+        sequence = action_sequence(scene, engine.action_size, articulated.n_segments)
+        out.plans[engine.name] = ActionPlan(sequence, articulated.hold)
+    if articulated.coupled:
+        out.dart_coupler = MPMRigidCoupler(engine, articulated.coupled, scene.dim)
+        out.couple(mpm, out.dart_coupler, articulated.grids, scene.dim, slots, grad)
+        out.names += articulated.names
+        out.shapes += link_shapes(scene, articulated.names)
 
 
 def _check_start_outside_rigid(rigid, x: np.ndarray, dx: float) -> None:
