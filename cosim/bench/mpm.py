@@ -101,7 +101,6 @@ def measure(dim: int, cells: int, side: int, precision: str, substeps: int, macr
 
 def run_mpm_bench(out_dir: Path, quick: bool = False) -> int:
     """Run every configuration in a subprocess; write DIR/mpm.csv and print a table."""
-    what = "mpm"
     from cosim.run import hardware_line
 
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -117,7 +116,7 @@ def run_mpm_bench(out_dir: Path, quick: bool = False) -> int:
         rows.append(json.loads(res.stdout.strip().splitlines()[-1]))
         r = rows[-1]
         print(f"  done {r['dim']}D {r['precision']}: {r['fwd_Mpss']:.2f} M particle-substeps/s forward", flush=True)
-    with open(out_dir / f"{what}.csv", "w", newline="") as f:
+    with open(out_dir / "mpm.csv", "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=COLUMNS)
         writer.writeheader()
         writer.writerows(rows)
@@ -131,7 +130,7 @@ def run_mpm_bench(out_dir: Path, quick: bool = False) -> int:
             f"{r['dim']:>3} {r['precision']:>9} {r['grid']:>6} {r['particles']:>9} {r['fwd_Mpss']:>8.2f} "
             f"{r['fwd_bwd_Mpss']:>8.2f} {r['bwd_fwd_ratio']:>7.2f} {r['peak_MiB']:>8.0f} {r['compile_s']:>9.1f}"
         )
-    print(f"wrote {out_dir / (what + '.csv')}")
+    print(f"wrote {out_dir / 'mpm.csv'}")
     return 0
 
 
