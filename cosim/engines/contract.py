@@ -13,8 +13,10 @@ bit for bit the same; ``step(inputs) -> (outputs, record)`` advances one macro s
 (the frame ``frame_dt``) and ``vjp(record, grad_outputs) -> grad_inputs`` is the
 vector-Jacobian product of that recorded step with respect to its state and every
 input. Nothing is passed any other way: no hidden seeds, no call-order conventions.
-``parameters()`` declares the engine's differentiable parameters (``Parameter``); a
-hook an engine cannot honour raises ``NotImplementedError`` naming it.
+``parameters()`` declares the engine's differentiable parameters (``Parameter``: an
+initial-state array, a material parameter read with ``material()`` and set with
+``set_parameters()``, or a per-step input); a hook an engine cannot honour raises
+``NotImplementedError`` naming it.
 
 The soft-body engine (MPM, ``cosim.engines.mpm.MPMEngine``, name ``"mpm"``):
     state     x (N, d) [m], v (N, d) [m/s], C (N, d, d) [1/s] APIC affine velocity,
@@ -37,7 +39,9 @@ Boundary states and reactions (the MPM's side of a coupling)
 A boundary source (``cosim.couplers.boundary``) is what the contact models see of a
 manipulator: for a point x at substep s it answers the signed distance (negative
 inside), the outward normal and the contact-point velocity, and it takes back the
-reaction. Per-substep states of its m bodies, substeps k = 0..K-1 of the step:
+reaction. Each source defines the layout of its states; the rigid sources (kinematic
+bodies, DART links) share this one, per-substep states of their m bodies, substeps
+k = 0..K-1 of the step:
 
     BoundaryStates  pos (K, m, d) [m] body origin, rot (K, m, d, d) body to world,
                     vel (K, m, d) [m/s] origin velocity, omega (K, m, 1|3) [rad/s]
