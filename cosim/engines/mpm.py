@@ -48,6 +48,7 @@ class MPMEngine(MPMKernels):
 
     def __init__(self, config: MPMConfig, bodies: list[ParticleBody]):
         self.boundaries: dict = {}  # name -> boundary source
+        self._known_state = None  # the state the last step returned, while it is still the current one
         super().__init__(config, bodies)
 
     # ------------------------------------------------------------ hooks and sources
@@ -94,8 +95,9 @@ class MPMEngine(MPMKernels):
         return {k: self._get(getattr(self, k), self._slot) for k in STATE_KEYS}
 
     def max_speed(self) -> float:
-        """Largest velocity component [m/s] of any particle now (reads only v)."""
-        return float(np.abs(self._get(self.v, self._slot)).max())
+        """Largest velocity component [m/s] of any particle now (reads only v, or nothing after a step)."""
+        v = self._known_state["v"] if self._known_state is not None else self._get(self.v, self._slot)
+        return float(np.abs(v).max())
 
     def set_state(self, state: dict[str, np.ndarray]) -> None:
         """Restore a state from ``state()``; the next step starts from it bit for bit."""
@@ -103,6 +105,7 @@ class MPMEngine(MPMKernels):
             self._put(getattr(self, k), 0, state[k])
         self._slot = 0
         self._resident = -1
+        self._known_state = None
 
     def parameters(self) -> list:
         """x0, v0 (initial state), E, nu per body (material) and, with controls, the impulses (input)."""
@@ -133,23 +136,27 @@ class MPMEngine(MPMKernels):
     def step(self, inputs: dict) -> tuple[dict, MPMRecord]:
         """One macro step: ``inputs`` dt [s], substeps, impulse (N, d) [N s] or None (spread evenly over
         the substeps in P2G), boundaries {source: BoundaryStates} for every attached source.
-        Returns ({state, reactions {source: Reactions}}, record)."""
+        Returns ({state, reactions {source: Reactions}}, record). The returned state is also the
+        next step's record of the state before it (one host read per step): do not modify it in place."""
         dt, K = float(inputs["dt"]), int(inputs["substeps"])
         boundaries = inputs.get("boundaries") or {}
         missing = sorted(set(self.boundaries) - set(boundaries))
         if missing:
             raise ValueError(f"MPM step: no boundary states for sources {missing}")
-        record = MPMRecord(self.state(), dt, K, inputs.get("impulse"), boundaries)
+        before = self._known_state if self._known_state is not None else self.state()
+        record = MPMRecord(before, dt, K, inputs.get("impulse"), boundaries)
         for name, source in self.boundaries.items():
             source.write(boundaries[name])
         record.token = self.advance(dt, K, record.impulse)
         reactions = {name: source.reactions(K) for name, source in self.boundaries.items()}
-        return {"state": self.state(), "reactions": reactions}, record
+        self._known_state = self.state()
+        return {"state": self._known_state, "reactions": reactions}, record
 
     def advance(self, dt: float, substeps: int, impulse: np.ndarray | None = None) -> int:
         """``substeps`` substeps of ``dt`` seconds with the boundaries as written; returns the step's token.
         The bare stepping under ``step`` (benchmarks use it to time the kernels alone)."""
         self._set_control(impulse)
+        self._known_state = None
         share = 1.0 / substeps
         if self.cfg.requires_grad:
             if substeps > self.cfg.grad_substeps:
@@ -180,6 +187,7 @@ class MPMEngine(MPMKernels):
         K, dt = record.substeps, record.dt
         share = 1.0 / K
         self._set_control(record.impulse)
+        self._known_state = None  # a recompute moves the slots away from the forward state
         for name, source in self.boundaries.items():  # the step's boundary, for its backward (and recompute)
             source.write(record.boundaries[name])
         if record.token != self._resident:
