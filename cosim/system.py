@@ -161,10 +161,6 @@ class CoupledSystem:
         np.add.at(full, self.ctrl_index, impulse)
         return full
 
-    def default_actions(self) -> dict[str, np.ndarray]:
-        """{engine: (segments, action size)}: the scene's action sequences."""
-        return {name: plan.sequence.copy() for name, plan in self.plans.items()}
-
     def action(self, name: str, n: int, actions: dict[str, np.ndarray] | None = None) -> np.ndarray | None:
         """Engine ``name``'s action in macro step n (default: the scene's sequence)."""
         plan = self.plans.get(name)

@@ -75,13 +75,13 @@ def test_plastic_body_yields_during_the_gradient_rollout(objective):
     sqrt(2/3) yield / (2 mu): particles at the cap have yielded.
     """
     objective.rollout(objective.initial_params())
-    F = objective.sim.mpm.state()["F"][objective.sim.slices["dough"]]
+    F = objective.system.mpm.state()["F"][objective.system.slices["dough"]]
     _U, sig, Vt = np.linalg.svd(F)
     S = np.einsum("nji,nj,njk->nik", Vt, sig, Vt)
     strain = S - np.eye(2)
     dev = strain - np.trace(strain, axis1=1, axis2=2)[:, None, None] / 2 * np.eye(2)
     norm = np.sqrt((dev**2).sum(axis=(1, 2)))
-    mu, _ = objective.sim.mpm.lame(1)
+    mu, _ = objective.system.mpm.lame(1)
     limit = np.sqrt(2 / 3) * 20.0 / (2 * mu)
     assert norm.max() <= limit * (1 + 1e-6)
     assert (norm > limit * (1 - 1e-6)).sum() >= 5
@@ -92,7 +92,7 @@ def test_com_loss_gradient(objective):
     from cosim.losses import Loss
 
     scene = three_material_scene(loss={"type": "com_target", "body": "dough", "target": [0.5, 0.5]})
-    sim = objective.sim
+    sim = objective.system
     loss = Loss(scene.loss, scene.dim, scene.seed, sim.slices, sim.mpm.mass)
     state = sim.mpm.state()
     _value, grad = loss({"mpm": state})
@@ -117,7 +117,7 @@ def test_checkpointed_gradients_equal_full_storage():
         build_system(three_material_scene(steps=4, substeps=3, frame_dt=3 * dt), requires_grad=True)
     )
     full = Objective(build_system(three_material_scene(steps=1, substeps=12, frame_dt=12 * dt), requires_grad=True))
-    assert checkpointed.sim.mpm.n_slots == 4 and full.sim.mpm.n_slots == 13
+    assert checkpointed.system.mpm.n_slots == 4 and full.system.mpm.n_slots == 13
     pc, pf = checkpointed.initial_params(), full.initial_params()
     pc["impulse"] = np.zeros_like(pc["impulse"])  # impulses are per macro step: switch them off
     pf["impulse"] = np.zeros_like(pf["impulse"])
@@ -129,7 +129,7 @@ def test_checkpointed_gradients_equal_full_storage():
         assert np.abs(gc[key] - gf[key]).max() < 1e-9 * scale, key
     # memory: the tape holds one state (x, v, C, F) and one impulse field per
     # macro step, whatever the substep count; the engine one macro step of substeps
-    n = checkpointed.sim.mpm.n_particles
+    n = checkpointed.system.mpm.n_particles
     assert checkpointed.tape.nbytes == 4 * n * (2 + 2 + 4 + 4 + 2) * 8
 
 

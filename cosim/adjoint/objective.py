@@ -46,11 +46,6 @@ class Objective:
         self.loss = loss
         self.tape = Tape()
 
-    @property
-    def sim(self):
-        """The coupled system (the name the CLI and older tests use)."""
-        return self.system
-
     def initial_params(self) -> dict[str, np.ndarray]:
         """Every declared parameter's value in the scene as built."""
         out = {}

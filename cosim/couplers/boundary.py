@@ -146,7 +146,3 @@ class RigidBoundaries:
     def state_grads(self, K: int) -> dict[str, np.ndarray]:
         """dL/d(body states) of substeps 0..K-1 (BoundaryStates layout) after a vjp."""
         return {k: getattr(self, k).grad.to_numpy()[:K].astype(np.float64) for k in BOUNDARY_KEYS}
-
-    def zero_reactions(self, K: int) -> dict[str, np.ndarray]:
-        """Reactions-shaped zeros of K substeps."""
-        return {"impulse": np.zeros((K, self.n, self.dim)), "angular_impulse": np.zeros((K, self.n, self.wdim))}

@@ -145,7 +145,3 @@ def add_states(a: State | None, b: State | None) -> State | None:
     if b is None:
         return a
     return {k: a[k] + b[k] for k in a}
-
-
-def zeros_like_state(state: State) -> State:
-    return {k: np.zeros_like(v) for k, v in state.items()}
