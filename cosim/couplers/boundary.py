@@ -3,10 +3,18 @@
 A boundary source holds, for each of its ``n`` bodies and each substep s of the
 current macro step, what a contact model needs at a point x (world frame):
 
-    @ti.func distance(s, b, x)          signed distance [m], negative inside
-    @ti.func distance_normal(s, b, x)   (distance, outward unit normal in the world)
-    @ti.func contact_velocity(s, b, x)  velocity [m/s] of the body's surface point at x
-    @ti.func add_reaction(s, b, x, dp)  the contact gave the material momentum dp [N s] at x
+    @ti.func distance(s, b, x, p)          signed distance [m], negative inside
+    @ti.func distance_normal(s, b, x, p)   (distance, outward unit normal in the world)
+    @ti.func contact_velocity(s, b, x, p)  velocity [m/s] of the body's surface point at x
+    @ti.func add_reaction(s, b, x, dp, p)  the contact gave the material momentum dp [N s] at x
+
+p is the particle asking (its index in the MPM engine; the forecast model's look-ahead
+point x + dt v asks for its particle) or -1 for a grid node at x. Rigid bodies ignore it;
+a cloth needs it, since which side of a sheet is legal is a per-particle state that
+penetration tracing carries across steps. A source may define ``before_substep(src, s)``
+(host): the MPM engine calls it before the particle hooks of substep s (particles in
+slot ``src``), outside any differentiated kernel, to run discrete per-particle work such
+as nearest-face queries and tracing.
 
 and on the host, the MPM engine's side of the contract (``cosim.engines.contract``):
 ``write(states)`` (BoundaryStates of substeps 0..K-1; clears their reactions),
@@ -51,21 +59,21 @@ class RigidBoundaries:
 
     # ------------------------------------------------------------------ what a contact model asks
     @ti.func
-    def distance(self, s, b: ti.template(), x):
+    def distance(self, s, b: ti.template(), x, p):
         return self.sdfs[b].distance(self.rot[s, b].transpose() @ (x - self.pos[s, b]))
 
     @ti.func
-    def distance_normal(self, s, b: ti.template(), x):
+    def distance_normal(self, s, b: ti.template(), x, p):
         R = self.rot[s, b]
         d, n_body = self.sdfs[b].distance_normal(R.transpose() @ (x - self.pos[s, b]))
         return d, R @ n_body
 
     @ti.func
-    def contact_velocity(self, s, b: ti.template(), x):
+    def contact_velocity(self, s, b: ti.template(), x, p):
         return self.vel[s, b] + self.spin(self.omega[s, b], x - self.pos[s, b])
 
     @ti.func
-    def add_reaction(self, s, b: ti.template(), x, dp):
+    def add_reaction(self, s, b: ti.template(), x, dp, p):
         self.impulse[s, b] -= dp
         self.angular_impulse[s, b] -= self.moment(x - self.pos[s, b], dp)
 

@@ -58,11 +58,11 @@ class GridContact:
             if m > 0:  # empty nodes need no boundary lookup
                 for src in ti.static(self.sources):
                     for b in ti.static(range(src.n)):
-                        d, n = src.distance_normal(s, b, xi)
+                        d, n = src.distance_normal(s, b, xi, -1)
                         if d < self.band:
-                            v_new = frictional_bc(v, n, src.contact_velocity(s, b, xi), self.friction)
+                            v_new = frictional_bc(v, n, src.contact_velocity(s, b, xi, -1), self.friction)
                             dp = m * (v_new - v)  # momentum given to the material
-                            src.add_reaction(s, b, xi, dp)
+                            src.add_reaction(s, b, xi, dp, -1)
                             v = v_new
             self.output[g, I] = v
 
@@ -111,15 +111,15 @@ class ParticlePenalty:
             dp_total = ti.Vector.zero(float, e.dim)
             for source in ti.static(self.sources):
                 for b in ti.static(range(source.n)):
-                    d, n = source.distance_normal(s, b, x)
+                    d, n = source.distance_normal(s, b, x, p)
                     if d < 0:
                         jn = -self.accel_per_depth * m * d * dt  # normal impulse, along +n
-                        rel = v - source.contact_velocity(s, b, x)
+                        rel = v - source.contact_velocity(s, b, x, p)
                         vt = rel - rel.dot(n) * n
                         vt_norm = ti.sqrt(vt.norm_sqr() + 1e-20)
                         jt = ti.min(self.friction * jn, m * vt_norm)  # friction impulse, against vt
                         dp = jn * n - jt * vt / vt_norm
-                        source.add_reaction(s, b, x, dp)
+                        source.add_reaction(s, b, x, dp, p)
                         dp_total += dp
             self.output[g, p] = dp_total
 
@@ -204,7 +204,7 @@ class ForecastContact:
             nearest = 1e30  # particles farther than the threshold from every body skip the look-ahead
             for source in ti.static(self.sources):
                 for b in ti.static(range(source.n)):
-                    nearest = ti.min(nearest, source.distance(s, b, x))
+                    nearest = ti.min(nearest, source.distance(s, b, x, p))
             base, _fx, w = e.stencil(x)
             v_init = ti.Vector.zero(float, e.dim)
             if nearest < self.threshold:
@@ -217,18 +217,18 @@ class ForecastContact:
             m_p = e.mass_of(p)
             for source in ti.static(self.sources):
                 for b in ti.static(range(source.n)):
-                    d, n = source.distance_normal(s, b, x)
+                    d, n = source.distance_normal(s, b, x, p)
                     if d < self.threshold:
-                        v_out = frictional_bc(v, n, source.contact_velocity(s, b, x), self.friction)
+                        v_out = frictional_bc(v, n, source.contact_velocity(s, b, x, p), self.friction)
                         smooth = ti.min(ti.exp(-self.beta * d), 1.0)
                         v_out = smooth * v_out + (1.0 - smooth) * v
-                        d_new, n_new = source.distance_normal(s, b, x + dt * v_out)
+                        d_new, n_new = source.distance_normal(s, b, x + dt * v_out, p)
                         if d_new < 0:
                             v_out += (-d_new / dt) * n_new
                         # this body's share r_b = v - v_out of the residual gives the material
                         # sum_i w_i (-alpha m_p r_b) = -alpha m_p r_b, with moment (x_p - pos) x dp
                         # (B-spline weights sum to 1 and reproduce x_p): one atomic pair per body
-                        source.add_reaction(s, b, x, (-self.alpha * m_p) * (v - v_out))
+                        source.add_reaction(s, b, x, (-self.alpha * m_p) * (v - v_out), p)
                         v = v_out
                         constrained = 1
             r = v_init - v

@@ -84,6 +84,8 @@ class MPMEngine(MPMKernels):
         if name in self.boundaries:
             raise ValueError(f"a boundary source named '{name}' is already attached")
         self.boundaries[name] = source
+        if hasattr(source, "before_substep"):
+            self.substep_preparers.append(source.before_substep)
 
     def _check_unspecialised(self, what: str) -> None:
         if self._token > 0:

@@ -132,6 +132,7 @@ class MPMKernels:
         self._serial = bool(config.serial_p2g)
         self.grid_hooks: list = []  # contact models rewriting grid velocities, in order
         self.particle_hooks: list = []  # contact models adding momentum in P2G
+        self.substep_preparers: list = []  # boundary sources' before_substep(src, s), run on the host
         self._grid_out = self  # what G2P gathers velocities from (``velocity(g, I)``): the last grid hook
         self._slot = 0
         self._token = 0
@@ -342,7 +343,10 @@ class MPMKernels:
         return src if self.cfg.requires_grad else 0
 
     def pre_coupling(self, src: int, s: int, dt: float, control_share: float = 0.0) -> None:
-        """Clear the grid, let the particle hooks compute their momenta, scatter every body (P2G)."""
+        """Let boundary sources prepare substep s (``before_substep``), clear the grid, let the
+        particle hooks compute their momenta, scatter every body (P2G)."""
+        for prepare in self.substep_preparers:
+            prepare(src, s)
         g = self._grid_index(src)
         if not self._fused_clear():  # else grid_update clears it
             self._clear_grid(g)
