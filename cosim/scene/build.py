@@ -118,6 +118,8 @@ def build_system(scene: Scene, requires_grad: bool = False, steps: int | None = 
     from cosim.engines.mpm import MPMConfig, MPMEngine
 
     steps = steps or scene.steps
+    if scene.cloth:  # wired in the next commits (the cloth engine and its boundary source)
+        raise SceneError("cloth: this build cannot simulate cloth yet")
     bodies = build_bodies(scene)
     stepping = build_stepping(scene, bodies, requires_grad, steps)
     cfg = MPMConfig(

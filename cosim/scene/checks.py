@@ -81,10 +81,16 @@ def semantic_problems(scene: Scene) -> list[str]:
         problems += rigid_problems(scene)
     if scene.articulated is not None:
         problems += articulated_problems(scene)
+    problems += cloth_problems(scene)
+    controlled = any(c.controls for c in scene.cloth) or (
+        scene.articulated is not None and any(s.controls for s in scene.articulated.skeletons)
+    )
     for section in ("gradient", "optimize"):
         asks = "action" in getattr(scene, section).params and section in scene.model_fields_set
-        if asks and (scene.articulated is None or not any(s.controls for s in scene.articulated.skeletons)):
-            problems.append(f"{section}.params: 'action' needs a skeleton with controls under articulated:")
+        if asks and not controlled:
+            problems.append(
+                f"{section}.params: 'action' needs a skeleton with controls under articulated: or a cloth with controls"
+            )
     if "impulse" in scene.gradient.params and not scene.controls and "gradient" in scene.model_fields_set:
         problems.append("gradient.params: 'impulse' needs at least one entry under controls")
     if "impulse" in scene.optimize.params and not scene.controls and "optimize" in scene.model_fields_set:
@@ -270,4 +276,57 @@ def _links_problems(key: str, skel, scene: Scene) -> list[str]:
             problems.append(
                 f"{key}.controls.{joint}: '{mode}' needs a 3D free joint on the world; use torque or velocity"
             )
+    return problems
+
+
+_CLOTH_MESH_NEEDS = {"rectangle": ("size", "resolution"), "disc": ("radius", "rings"), "file": ("file",)}
+RESERVED_ENGINE_NAMES = ("mpm", "dart", "kinematic")
+
+
+def cloth_problems(scene: Scene) -> list[str]:
+    """The ``cloth:`` section: 3D only, unique names, each mesh type's keys, vector lengths, actions."""
+    problems: list[str] = []
+    if scene.cloth and scene.dim != 3:
+        return ["cloth: cloth needs dim 3 (a 2D cloth would be a rod); remove the section or use dim: 3"]
+    names = [c.name for c in scene.cloth]
+    for i, cloth in enumerate(scene.cloth):
+        base = f"cloth[{i}]"
+        if names.count(cloth.name) > 1 or cloth.name in RESERVED_ENGINE_NAMES:
+            problems.append(
+                f"{base}.name: '{cloth.name}' is taken (names must be unique and not {list(RESERVED_ENGINE_NAMES)})"
+            )
+        mesh = cloth.mesh
+        for key in _CLOTH_MESH_NEEDS[mesh.type]:
+            if getattr(mesh, key) is None:
+                problems.append(f"{base}.mesh.{key}: a {mesh.type} cloth needs it")
+        for key in ("size", "resolution"):
+            value = getattr(mesh, key)
+            if mesh.type == "rectangle" and value is not None and len(value) != 2:
+                problems.append(f"{base}.mesh.{key}: give two entries (along the two axes across the normal)")
+        if len(mesh.center) != 3:
+            problems.append(f"{base}.mesh.center: must have 3 entries, got {len(mesh.center)}")
+        if mesh.type == "file" and mesh.file is not None:
+            path = (scene.source_dir / mesh.file).resolve()
+            if not path.is_file():
+                problems.append(f"{base}.mesh.file: file not found: {path}")
+        selections = [("fixed", cloth.fixed)] + [
+            (f"controls[{j}].vertices", c.vertices) for j, c in enumerate(cloth.controls)
+        ]
+        for key, sel in selections:
+            if sel is None:
+                continue
+            if not sel.points and sel.region is None:
+                problems.append(f"{base}.{key}: select vertices with points or region")
+            for j, point in enumerate(sel.points):
+                if len(point) != 3:
+                    problems.append(f"{base}.{key}.points[{j}]: must have 3 entries, got {len(point)}")
+        width = 3 * len(cloth.controls)
+        acts = cloth.actions
+        for j, action in enumerate(acts.sequence + ([acts.initial] if acts.initial is not None else [])):
+            if len(action) != width:
+                which = f"sequence[{j}]" if j < len(acts.sequence) else "initial"
+                problems.append(
+                    f"{base}.actions.{which}: {len(action)} entries, the {len(cloth.controls)} controls take "
+                    f"{width} (a velocity [m/s] each)"
+                )
     return problems

@@ -295,6 +295,58 @@ class ArticulatedSpec(Strict):
     collision: bool = False  # DART rigid-rigid collision for skeletons with collide: true
 
 
+class ClothMeshSpec(Strict):
+    """The cloth's triangle mesh [m]: a rectangle grid or a disc lying flat across ``normal``, or a
+    mesh file (any format trimesh reads; open, possibly non-orientable)."""
+
+    type: Literal["rectangle", "disc", "file"]
+    center: Vec  # [m] the sheet's centre (file: where the file's origin goes)
+    normal: Literal["x", "y", "z"] = "y"  # rectangle, disc: the axis the flat sheet faces
+    size: list[Positive] | None = None  # rectangle: [width, depth] [m] along the two other axes in order
+    resolution: list[Annotated[int, Field(ge=2, le=1000)]] | None = None  # rectangle: vertices per side
+    radius: Positive | None = None  # disc [m]
+    rings: Annotated[int, Field(ge=1, le=200)] | None = None  # disc: concentric rings of vertices
+    file: str | None = None
+    scale: Positive = 1.0
+
+
+class ClothMaterialSpec(Strict):
+    """Membrane and bending stiffness, areal density and damping of a cloth."""
+
+    stretch: Positive = 1000.0  # [N/m] membrane (corotated) stiffness, SoftMAC's k_stiff_stretching
+    bend: Annotated[float, Field(ge=0)] = 0.03  # [N m] bending stiffness, SoftMAC's k_stiff_bending
+    density: Positive = 0.2  # [kg/m^2] areal density
+    damping: Annotated[float, Field(ge=0)] = 0.0  # [1/s] mass-proportional damping
+
+
+class VertexSelectSpec(Strict):
+    """Cloth vertices by their rest positions: the vertex nearest to each point, and every vertex in a box."""
+
+    points: list[Vec] = []  # [m]
+    region: RegionSpec | None = None
+
+
+class ClothControlSpec(Strict):
+    """Vertices moved together by the action: three velocity entries [m/s] per control."""
+
+    name: str
+    vertices: VertexSelectSpec
+
+
+class ClothSpec(Strict):
+    """A cloth simulated by our implicit cloth engine and coupled two-way with the MPM (3D)."""
+
+    name: str = "cloth"
+    mesh: ClothMeshSpec
+    material: ClothMaterialSpec = ClothMaterialSpec()
+    fixed: VertexSelectSpec | None = None  # pinned vertices
+    controls: list[ClothControlSpec] = []
+    actions: ActionSpec = ActionSpec()  # each action: (controls x 3) velocities [m/s], held ``hold`` steps
+    thickness: Positive | None = None  # [m] contact distance to rigid bodies, default dx / 2
+    tolerance: Positive = 1e-9  # Newton: residual force relative to the cloth's weight
+    max_iterations: Annotated[int, Field(ge=1, le=1000)] = 50
+
+
 class ContactSpec(Strict):
     """How MPM material meets rigid bodies (see cosim.couplers.contact)."""
 
@@ -305,6 +357,7 @@ class ContactSpec(Strict):
     alpha: Annotated[float, Field(gt=0, le=2)] = 0.8  # forecast: gradient step (mass-normalised)
     threshold: Positive | None = None  # [m] forecast: contact distance d_hat, default dx
     smoothing: Positive | None = None  # [1/m] forecast: beta of s = min(exp(-beta d), 1), default 2 / dx
+    tracing: bool = True  # cloth: penetration tracing (off: a particle's legal side is where it is now)
 
 
 class GradientSpec(Strict):
@@ -340,6 +393,7 @@ class Scene(Strict):
     mpm: MPMSpec
     rigid: RigidSpec | None = None
     articulated: ArticulatedSpec | None = None
+    cloth: list[ClothSpec] = []
     contact: ContactSpec = ContactSpec()
     controls: list[ControlSpec] = []
     loss: LossSpec = LossSpec()
