@@ -10,7 +10,8 @@ import numpy as np
 
 
 def zeros_like(state: dict[str, dict[str, np.ndarray]]) -> dict[str, dict[str, np.ndarray]]:
-    return {name: {k: np.zeros_like(v) for k, v in s.items()} for name, s in state.items()}
+    """Zero adjoints of every engine's state (couplers' discrete states have none)."""
+    return {name: {k: np.zeros_like(v) for k, v in s.items()} for name, s in state.items() if name != "couplers"}
 
 
 class Loss:

@@ -131,13 +131,21 @@ class CoupledSystem:
 
     # ------------------------------------------------------------ state of every engine
     def state(self) -> dict[str, dict[str, np.ndarray]]:
-        """{engine name: its state}, the MPM under "mpm"."""
-        return {"mpm": self.mpm.state(), **{name: e.state() for name, e in self.engines.items()}}
+        """{engine name: its state}, the MPM under "mpm"; couplers that carry a discrete state of
+        their own (the cloth's penetration tracing) add it under "couplers" {name: state}."""
+        out = {"mpm": self.mpm.state(), **{name: e.state() for name, e in self.engines.items()}}
+        carried = {c.name: c.state() for c in self.couplers if hasattr(c, "state")}
+        if carried:
+            out["couplers"] = carried
+        return out
 
     def set_state(self, state: dict[str, dict[str, np.ndarray]], step_index: int = 0) -> None:
         self.mpm.set_state(state["mpm"])
         for name, e in self.engines.items():
             e.set_state(state[name])
+        for c in self.couplers:
+            if hasattr(c, "set_state"):
+                c.set_state(state["couplers"][c.name])
         self.step_index = step_index
 
     def reset(self) -> None:
@@ -261,12 +269,15 @@ class CoupledSystem:
         dynamics), dL/da_e and dL/dF_e; each coupler's ``forces_vjp`` turns dL/dF into reaction
         adjoints; one MPM vjp, given them all, returns dL/ds_M (direct and force paths) and the
         boundary adjoints; each coupler's ``boundary_vjp`` adds the boundary path to dL/ds_e.
-        Returns {"state": per engine, "action": per engine, "impulse", "material": {E, nu}}.
+        Returns {"state": per engine, "action": per engine, "impulse", "material": per engine
+        {parameter key: this step's share}} (an engine's vjp reports its own under "material").
         """
-        state_grads, action_grads, force_grads = {}, {}, {}
+        state_grads, action_grads, force_grads, material_grads = {}, {}, {}, {}
         for name in reversed(list(self.engines)):
             out = self.engines[name].vjp(record.engines[name], {"state": grad[name]})
             state_grads[name], action_grads[name], force_grads[name] = out["state"], out["action"], out["forces"]
+            if out.get("material"):
+                material_grads[name] = out["material"]
         reaction_grads, carries = {}, {}
         for c in self.couplers:
             g_forces = force_grads.get(c.engine)
@@ -280,7 +291,7 @@ class CoupledSystem:
             "state": {"mpm": mpm["state"], **state_grads},
             "action": action_grads,
             "impulse": mpm.get("impulse"),
-            "material": {"E": mpm["E"], "nu": mpm["nu"]},
+            "material": {"mpm": {"E": mpm["E"], "nu": mpm["nu"]}, **material_grads},
         }
 
     # ------------------------------------------------------------ time stepping and checks

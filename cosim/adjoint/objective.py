@@ -108,7 +108,7 @@ class Objective:
             if p.kind == "state":
                 grads[name] = g.state0[p.engine][p.key]
             elif p.kind == "material":
-                grads[name] = g.material[p.key]
+                grads[name] = g.material[p.engine][p.key]
             elif p.key == "impulse":
                 grads[name] = np.stack([gi[self.system.ctrl_index] for gi in g.impulse])
             else:

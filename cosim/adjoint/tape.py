@@ -26,7 +26,7 @@ class Gradients:
     state0: dict[str, dict[str, np.ndarray]]  # dL/d(initial state) per engine name
     impulse: list[np.ndarray | None]  # per macro step, (N, d)
     action: dict[str, list[np.ndarray | None]] = field(default_factory=dict)  # per engine, per macro step
-    material: dict[str, np.ndarray] = field(default_factory=dict)  # per-body E, nu
+    material: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)  # per engine: {key: dL/dkey}
 
 
 class Tape:
@@ -56,13 +56,15 @@ class Tape:
         n_steps = len(self.records)
         impulses: list[np.ndarray | None] = [None] * n_steps
         actions: dict[str, list] = {}
-        material: dict[str, np.ndarray] = {}
+        material: dict[str, dict[str, np.ndarray]] = {}
         for n in reversed(range(n_steps)):
             out = step_vjp(self.records[n], grad_state)
             grad_state = out["state"]
             impulses[n] = out.get("impulse")
             for name, g in out["action"].items():
                 actions.setdefault(name, [None] * n_steps)[n] = g
-            for key, g in out["material"].items():
-                material[key] = material.get(key, 0.0) + g
+            for engine, grads in out["material"].items():
+                totals = material.setdefault(engine, {})
+                for key, g in grads.items():
+                    totals[key] = totals.get(key, 0.0) + g
         return Gradients(state0=grad_state, impulse=impulses, action=actions, material=material)
