@@ -65,11 +65,12 @@ class Renderer3D:
         if floor is not None:
             self._add_floor(points, floor)
         self._actors: list = []
+        self._label = self.plotter.add_text("", position="upper_left", font_size=10, color="black")
 
     def _add_floor(self, points: np.ndarray, height: float) -> None:
         pv = _pyvista()
         lo, hi = points.min(axis=0), points.max(axis=0)
-        size = 8.0 * np.linalg.norm(hi - lo)  # edges out of sight: a horizon, not a tile
+        size = 20.0 * np.linalg.norm(hi - lo)  # edges out of sight: a horizon, not a tile
         centre = 0.5 * (lo + hi)
         centre = centre - self.up * (centre @ self.up - height)
         plane = pv.Plane(center=centre, direction=self.up, i_size=size, j_size=size)
@@ -119,9 +120,9 @@ class Renderer3D:
                         render=False,
                     )
                 )
-        if frame.label:
-            self._actors.append(self.plotter.add_text(frame.label, position="upper_left", font_size=10, color="black"))
+        self._label.SetText(2, frame.label)  # 2: the upper-left corner
         self.plotter.renderer.ResetCameraClippingRange()
+        self.plotter.render()  # pyvista renders by itself only before the first screenshot
         return np.asarray(self.plotter.screenshot(return_img=True))[..., :3]
 
     def close(self) -> None:
