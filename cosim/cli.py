@@ -182,6 +182,7 @@ def cmd_render(args) -> int:
 
     from cosim.errors import InputError
     from cosim.render import write_preview
+    from cosim.run import preview_frames, up_axis
 
     scene = _load(args)
     path = Path(args.trajectory)
@@ -193,18 +194,39 @@ def cmd_render(args) -> int:
     if missing:
         raise InputError(f"{path}: not a cosim trajectory (missing {', '.join(missing)})")
     frames = [[traj[f"x_{n}"][i] for n in names] for i in range(len(traj["time"]))]
+    rigid, poses = _rigid_of(scene, traj, path)
     spacing = min(b.spacing or 0.5 * scene.dx for b in scene.mpm.bodies)
     path = write_preview(
         Path(args.output),
-        frames,
-        traj["time"],
+        preview_frames(frames, traj["time"], rigid, poses),
         np.asarray(scene.cells) * scene.dx,
         spacing,
         scene.output.resolution,
         scene.output.fps,
+        up_axis(scene.gravity),
     )
     print(f"wrote {path}")
     return 0
+
+
+def _rigid_of(scene, traj, path: Path):
+    """The scene's ``RigidBodies`` (for their SDF surfaces) and the trajectory's poses per frame,
+    or (None, None) for a trajectory without rigid bodies."""
+    from cosim.errors import InputError
+
+    if "rigid_names" not in traj:
+        return None, None
+    from cosim.scene.build import build_system
+
+    rigid = build_system(scene).rigid
+    names = [str(n) for n in traj["rigid_names"]]
+    if rigid is None or list(rigid.names) != names:
+        raise InputError(
+            f"{path}: its rigid bodies {names} are not the scene's {list(rigid.names) if rigid else []}; "
+            "render it with the scene that wrote it"
+        )
+    count = len(traj["time"])
+    return rigid, [[(traj[f"rigid_pos_{n}"][i], traj[f"rigid_rot_{n}"][i]) for n in names] for i in range(count)]
 
 
 def positive_int(text: str) -> int:

@@ -81,25 +81,35 @@ class Recorder:
         spacing = min(b.spacing or 0.5 * scene.dx for b in scene.mpm.bodies)
         path = write_preview(
             out_dir / f"preview.{scene.output.preview}",
-            self.frames,
-            np.asarray(self.times),
+            preview_frames(self.frames, self.times, self.sim.rigid, self.rigid_poses),
             np.asarray(scene.cells) * scene.dx,
             spacing,
             scene.output.resolution,
             scene.output.fps,
-            self._rigid_points(),
+            up_axis(scene.gravity),
         )
         return path.name
 
-    def _rigid_points(self) -> list[list[np.ndarray]] | None:
-        """World-space surface points of each rigid body at each saved frame."""
-        rigid = self.sim.rigid
-        if rigid is None:
-            return None
-        from cosim.couplers.sdf import surface_points
 
-        local = [surface_points(g) for g in rigid.grids]
-        return [[p + pts @ R.T for pts, (p, R) in zip(local, poses)] for poses in self.rigid_poses]
+def preview_frames(frames: list[list[np.ndarray]], times, rigid=None, rigid_poses=None) -> list:
+    """``render.Frame``s of saved frames: particle positions per body, and the rigid bodies'
+    surfaces (``rigid``: a ``RigidBodies`` with its SDF grids; ``rigid_poses``: per frame, their poses)."""
+    from cosim.render import Frame
+
+    geometry = [[] for _ in frames]
+    if rigid is not None and rigid_poses:
+        from cosim.render.surfaces import rigid_geometry
+
+        geometry = rigid_geometry(rigid.grids, rigid_poses, rigid.dim)
+    return [Frame.from_bodies(f, rigid=g, label=f"t = {t:.3f} s") for f, t, g in zip(frames, times, geometry)]
+
+
+def up_axis(gravity) -> np.ndarray:
+    """The picture's up: against gravity, +y without it."""
+    g = np.asarray(gravity, dtype=np.float64)
+    n = np.linalg.norm(g)
+    up = -g / n if n > 0 else np.eye(len(g))[1]
+    return up if len(up) == 3 else np.append(up, 0.0)
 
 
 def run_scene(

@@ -221,7 +221,7 @@ def _figure(rows: list[dict], path: Path) -> None:
     """Last frames side by side (the paper's Fig. 4): particles and the ring wall."""
     from PIL import Image
 
-    from cosim.render import Camera, render_frame
+    from cosim.render.raster2d import Camera, render_frame
 
     camera = Camera(np.array([1.0, 1.0]), 300)
     tiles = []

@@ -378,7 +378,7 @@ class OutputSpec(Strict):
     every: Annotated[int, Field(ge=1)] = 1  # save a frame every N macro steps
     preview: Literal["gif", "mp4", "none"] = "gif"
     fps: Annotated[int, Field(ge=1, le=120)] = 30
-    resolution: Annotated[int, Field(ge=64, le=2048)] = 400  # preview pixels (longest side)
+    resolution: Annotated[int, Field(ge=64, le=2048)] = 640  # preview pixels (longest side)
 
 
 class Scene(Strict):
