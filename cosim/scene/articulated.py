@@ -236,17 +236,6 @@ def _is_coupled(skel, link: str) -> bool:
     return skel.couple != "none" and link in skel.couple
 
 
-def action_sequence(scene, action_size: int, n_segments: int) -> np.ndarray:
-    """(n_segments, action_size): the scene's ``sequence`` then ``initial`` (default zeros)."""
-    a = scene.articulated.actions
-    out = np.zeros((n_segments, action_size))
-    if a.initial is not None:
-        out[:] = a.initial
-    for n, act in enumerate(a.sequence[:n_segments]):
-        out[n] = act
-    return out
-
-
 def link_shapes(scene, names: list[str]) -> list:
     """The scene shape of each coupled body "skeleton/link" (None for URDF links)."""
     shapes = {f"{skel.name}/{link.name}": link.shape for skel in scene.articulated.skeletons for link in skel.links}

@@ -118,8 +118,6 @@ def build_system(scene: Scene, requires_grad: bool = False, steps: int | None = 
     from cosim.engines.mpm import MPMConfig, MPMEngine
 
     steps = steps or scene.steps
-    if scene.cloth:  # wired in the next commits (the cloth engine and its boundary source)
-        raise SceneError("cloth: this build cannot simulate cloth yet")
     bodies = build_bodies(scene)
     stepping = build_stepping(scene, bodies, requires_grad, steps)
     cfg = MPMConfig(
@@ -186,6 +184,7 @@ class Manipulators:
     grids: list = field(default_factory=list)
     kinematic: object = None
     dart_coupler: object = None
+    cloths: list = field(default_factory=list)  # cloth engines
 
     def couple(self, mpm, coupler, grids: list, dim: int, slots: int, grad: bool) -> None:
         """Attach ``coupler``'s boundary source (``grids``: one SDF per body) to the MPM."""
@@ -210,6 +209,8 @@ def build_manipulators(scene: Scene, mpm, stepping: Stepping) -> Manipulators:
         _add_kinematic(scene, mpm, out, slots, stepping.requires_grad)
     if scene.articulated is not None:
         _add_articulated(scene, mpm, out, slots, stepping.requires_grad)
+    for i in range(len(scene.cloth)):
+        _add_cloth(scene, i, mpm, out)
     if out.sources:  # with nothing the MPM sees, no contact hook
         attach_contact(mpm, out.sources, scene.contact)
     return out
@@ -245,19 +246,39 @@ def _add_articulated(scene: Scene, mpm, out: Manipulators, slots: int, grad: boo
     """DART skeletons (``articulated:``): the engine, its action plan and, for the links the MPM
     sees, the coupler (a skeleton the MPM never sees needs none)."""
     from cosim.couplers.mpm_rigid import MPMRigidCoupler
-    from cosim.scene.articulated import action_sequence, build_articulated, link_shapes
+    from cosim.scene.actions import action_sequence
+    from cosim.scene.articulated import build_articulated, link_shapes
 
     articulated = build_articulated(scene, scene.dx)
     engine = articulated.engine
     out.engines.append(engine)
     if engine.action_size:
-        sequence = action_sequence(scene, engine.action_size, articulated.n_segments)
+        sequence = action_sequence(scene.articulated.actions, engine.action_size, articulated.n_segments)
         out.plans[engine.name] = ActionPlan(sequence, articulated.hold)
     if articulated.coupled:
         out.dart_coupler = MPMRigidCoupler(engine, articulated.coupled, scene.dim)
         out.couple(mpm, out.dart_coupler, articulated.grids, scene.dim, slots, grad)
         out.names += articulated.names
         out.shapes += link_shapes(scene, articulated.names)
+
+
+def _add_cloth(scene: Scene, index: int, mpm, out: Manipulators) -> None:
+    """A cloth (``cloth[index]``): its engine, action plan, boundary source (with penetration
+    tracing unless ``contact.tracing`` is off) and coupler."""
+    from cosim.couplers.cloth_boundary import ClothBoundary
+    from cosim.couplers.mpm_cloth import MPMClothCoupler
+    from cosim.scene.cloth import build_cloth
+
+    engine, plan = build_cloth(scene, index)
+    out.engines.append(engine)
+    out.cloths.append(engine)
+    if plan is not None:
+        out.plans[engine.name] = plan
+    source = ClothBoundary(mpm, engine.mesh.vertices, engine.mesh.faces, trace=scene.contact.tracing)
+    coupler = MPMClothCoupler(engine)
+    mpm.attach_boundary(coupler.source, source)
+    out.couplers.append(coupler)
+    out.sources.append(source)
 
 
 def _check_start_outside_rigid(rigid, x: np.ndarray, dx: float) -> None:

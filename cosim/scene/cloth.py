@@ -1,0 +1,78 @@
+"""The ``cloth:`` section made runnable: a cloth engine per entry, its action plan, and its vertex sets.
+
+Meshes come from ``cosim.engines.cloth_mesh`` (rectangle, disc or a file, scaled and moved
+to ``mesh.center``); pinned and controlled vertices are picked by rest position (the vertex
+nearest to each point, every vertex in a box). A selection that picks nothing, or the same
+vertex twice, is a ``SceneError`` naming the key.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from cosim.errors import SceneError
+from cosim.scene.actions import action_sequence
+from cosim.system import ActionPlan
+
+
+def build_mesh(spec, source_dir, key: str):
+    """The ``ClothMesh`` of a validated ``cloth[i].mesh`` section."""
+    from cosim.engines import cloth_mesh
+
+    try:
+        if spec.type == "rectangle":
+            return cloth_mesh.rectangle(spec.size, spec.resolution, spec.center, spec.normal)
+        if spec.type == "disc":
+            return cloth_mesh.disc(spec.radius, spec.rings, spec.center, spec.normal)
+        loaded = cloth_mesh.from_file((source_dir / spec.file).resolve())
+        vertices = loaded.vertices * spec.scale + np.asarray(spec.center, dtype=np.float64)
+        return cloth_mesh.build(vertices, loaded.faces, loaded.source)
+    except ValueError as exc:
+        raise SceneError(f"{key}: {exc}") from exc
+
+
+def select_vertices(spec, rest: np.ndarray, key: str) -> np.ndarray:
+    """Indices of the vertices ``spec`` (points, region) picks from the rest positions (V, 3) [m]."""
+    picked = [int(np.argmin(np.linalg.norm(rest - np.asarray(p, dtype=np.float64), axis=1))) for p in spec.points]
+    if spec.region is not None:
+        inside = np.all((rest >= spec.region.min) & (rest <= spec.region.max), axis=1)
+        if not inside.any():
+            raise SceneError(f"{key}.region: selects no vertex; the cloth spans {rest.min(0)} to {rest.max(0)} m")
+        picked += np.flatnonzero(inside).tolist()
+    return np.unique(np.asarray(picked, dtype=np.int64))
+
+
+def build_cloth(scene, index: int):
+    """(ClothEngine, ActionPlan or None) of ``scene.cloth[index]``."""
+    from cosim.engines.cloth import ClothEngine, ClothMaterial
+
+    spec = scene.cloth[index]
+    key = f"cloth[{index}]"
+    mesh = build_mesh(spec.mesh, scene.source_dir, f"{key}.mesh")
+    fixed = select_vertices(spec.fixed, mesh.vertices, f"{key}.fixed") if spec.fixed is not None else []
+    controls = [
+        select_vertices(c.vertices, mesh.vertices, f"{key}.controls[{j}].vertices") for j, c in enumerate(spec.controls)
+    ]
+    chosen = np.concatenate([np.asarray(fixed, dtype=np.int64), *controls]) if controls else np.asarray(fixed)
+    if len(np.unique(chosen)) != len(chosen):
+        raise SceneError(f"{key}: a vertex is both pinned and controlled, or in two controls; make the selections disjoint")
+    m = spec.material
+    material = ClothMaterial(k_stretch=m.stretch, k_bend=m.bend, c_mass=m.damping, density=m.density)
+    engine = ClothEngine(
+        mesh,
+        material,
+        fixed=fixed,
+        controls=controls,
+        gravity=scene.gravity,
+        frame_dt=scene.time.frame_dt,
+        name=spec.name,
+        rtol=spec.tolerance,
+        max_iterations=spec.max_iterations,
+    )
+    plan = None
+    if controls:
+        hold = spec.actions.hold
+        plan = ActionPlan(action_sequence(spec.actions, engine.action_size, math.ceil(scene.steps / hold)), hold)
+    return engine, plan
