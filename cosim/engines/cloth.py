@@ -78,7 +78,9 @@ class ClothMaterial:
         for key in MATERIAL_KEYS:
             value = getattr(self, key)
             if not np.isfinite(value) or value < 0 or (key in ("k_stretch", "density") and value == 0):
-                raise InputError(f"cloth material {key} must be finite and {'> 0' if key in ('k_stretch', 'density') else '>= 0'}, got {value}")
+                raise InputError(
+                    f"cloth material {key} must be finite and {'> 0' if key in ('k_stretch', 'density') else '>= 0'}, got {value}"
+                )
 
 
 @dataclass
@@ -137,11 +139,13 @@ class ClothEngine(ClothAdjoint):
         V = mesh.n_vertices
         self.fixed = self._indices(fixed, "fixed")
         self.controls = [self._indices(g, f"controls[{i}]") for i, g in enumerate(controls)]
-        self.ctrl_vertex = np.concatenate(self.controls) if self.controls else np.zeros(0, dtype=np.int64)
-        self.ctrl_group = np.concatenate([np.full(len(g), i) for i, g in enumerate(self.controls)]).astype(int)
+        self.ctrl_vertex = np.concatenate([np.zeros(0, dtype=np.int64), *self.controls])
+        self.ctrl_group = np.repeat(np.arange(len(self.controls)), [len(g) for g in self.controls]).astype(np.int64)
         prescribed = np.concatenate([self.fixed, self.ctrl_vertex])
         if len(np.unique(prescribed)) != len(prescribed):
-            raise InputError(f"cloth '{name}': a vertex is fixed or controlled twice (fixed and control groups overlap)")
+            raise InputError(
+                f"cloth '{name}': a vertex is fixed or controlled twice (fixed and control groups overlap)"
+            )
         self.free = np.ones(V, dtype=bool)
         self.free[prescribed] = False
         dof_free = np.repeat(self.free, 3)
@@ -158,6 +162,7 @@ class ClothEngine(ClothAdjoint):
         edges = mesh.vertices[mesh.edges[:, 1]] - mesh.vertices[mesh.edges[:, 0]]
         self._l_min = float(np.linalg.norm(edges, axis=1).min())
         self._size = float(np.ptp(mesh.vertices, axis=0).max())
+        self._area = float(mesh.rest_area.sum())
         self.x = mesh.vertices.copy()
         self.v = np.zeros((V, 3))
         self.steps = 0
@@ -184,7 +189,9 @@ class ClothEngine(ClothAdjoint):
         V = self.mesh.n_vertices
         for key in ("x", "v"):
             if np.shape(state[key]) != (V, 3):
-                raise InputError(f"cloth '{self.name}': state {key} must have shape ({V}, 3), got {np.shape(state[key])}")
+                raise InputError(
+                    f"cloth '{self.name}': state {key} must have shape ({V}, 3), got {np.shape(state[key])}"
+                )
         self.x = np.array(state["x"], dtype=np.float64)
         self.v = np.array(state["v"], dtype=np.float64)
 
@@ -206,7 +213,9 @@ class ClothEngine(ClothAdjoint):
         out = [Parameter(f"{n}.x0", n, "state", "x", self._l_min), Parameter(f"{n}.v0", n, "state", "v", 1.0)]
         if self.controls:
             out.append(Parameter(f"{n}.action", n, "input", "action", 1e-2))
-        out += [Parameter(f"{n}.{k}", n, "material", k, max(float(getattr(self._material, k)), 1e-3)) for k in MATERIAL_KEYS]
+        out += [
+            Parameter(f"{n}.{k}", n, "material", k, max(float(getattr(self._material, k)), 1e-3)) for k in MATERIAL_KEYS
+        ]
         return out
 
     def step(self, inputs: dict) -> tuple[dict, ClothRecord]:
@@ -227,7 +236,9 @@ class ClothEngine(ClothAdjoint):
         V = self.mesh.n_vertices
         action = np.zeros(self.action_size) if action is None else np.asarray(action, dtype=np.float64).reshape(-1)
         if action.shape != (self.action_size,):
-            raise InputError(f"cloth '{self.name}': action must have length {self.action_size} (3 per control group), got {action.size}")
+            raise InputError(
+                f"cloth '{self.name}': action must have length {self.action_size} (3 per control group), got {action.size}"
+            )
         forces = np.zeros((V, 3)) if forces is None else np.asarray(forces, dtype=np.float64)
         if forces.shape != (V, 3):
             raise InputError(f"cloth '{self.name}': forces must have shape ({V}, 3) [N], got {forces.shape}")
@@ -259,13 +270,24 @@ class ClothEngine(ClothAdjoint):
         return x
 
     def _potential(self, x: np.ndarray, d: _Step) -> tuple[float, float]:
-        """The incremental potential E(x) [J] and the sum of its terms' magnitudes (its round-off scale)."""
+        """The incremental potential E(x) [J] and a bound on its round-off error [J]: each term's error is
+        a few eps times the magnitudes it is computed from (|x - x^| (|x| + |x^|) for the inertia,
+        I1 + 2 sqrt(I1 + 2J) + 2 ~ 8 per unit area for the membrane, |f| |x| for the loads)."""
         h, mat = self.frame_dt, d.material
-        inertia = 0.5 * np.sum(d.mass * (x - d.x_hat) ** 2) / h**2 + 0.5 * mat.c_mass * np.sum(d.mass * (x - d.x_n) ** 2) / h
+        dx_hat, dx_n = x - d.x_hat, x - d.x_n
+        inertia = 0.5 * np.sum(d.mass * dx_hat**2) / h**2 + 0.5 * mat.c_mass * np.sum(d.mass * dx_n**2) / h
         mem, bend = self.energy.energies(x)
-        elastic = mat.k_stretch * mem + mat.k_bend * bend
         external = -np.sum(d.forces * x) - np.sum(d.mass * self.gravity * x)
-        return inertia + elastic + external, abs(inertia) + abs(elastic) + abs(external)
+        size = np.abs(x) + np.abs(d.x_hat)
+        gross = (
+            np.sum(d.mass * np.abs(dx_hat) * size) / h**2
+            + mat.c_mass * np.sum(d.mass * np.abs(dx_n) * size) / h
+            + mat.k_stretch * (8 * self._area + mem)
+            + mat.k_bend * bend
+            + np.sum(np.abs(d.forces * x))
+            + np.sum(np.abs(d.mass * self.gravity * x))
+        )
+        return inertia + mat.k_stretch * mem + mat.k_bend * bend + external, 64 * np.finfo(np.float64).eps * gross
 
     def _gradient(self, x: np.ndarray, d: _Step) -> np.ndarray:
         """grad E (V, 3) [N]."""
@@ -304,7 +326,9 @@ class ClothEngine(ClothAdjoint):
             g = self._gradient(x, d).reshape(-1)[self.free_dofs]
             residual = float(np.abs(g).max()) if len(g) else 0.0
             if not np.isfinite(residual):
-                raise SimulationError(f"cloth '{self.name}': non-finite residual in step {self.steps}, Newton iteration {it}; reduce frame_dt or check the forces")
+                raise SimulationError(
+                    f"cloth '{self.name}': non-finite residual in step {self.steps}, Newton iteration {it}; reduce frame_dt or check the forces"
+                )
             if residual <= tol:
                 return x, it, residual, tol
             if it == self.max_iterations:
@@ -332,16 +356,17 @@ class ClothEngine(ClothAdjoint):
         raise AssertionError("unreachable")
 
     def _line_search(self, x: np.ndarray, dx: np.ndarray, g: np.ndarray, d: _Step) -> np.ndarray:
-        """Backtracking (Armijo, c = 1e-4) on E along the free-dof direction dx; the round-off scale of E
-        is allowed as slack so converged-to-round-off steps are not refused."""
-        E0, scale = self._potential(x, d)
+        """Backtracking on E along the free-dof direction dx: accept a sufficient decrease (Armijo,
+        c = 1e-4); once the predicted decrease alpha |g . dx| is below E's round-off (near convergence)
+        E cannot rank the points, so accept any step that does not raise E beyond its round-off."""
+        E0, noise = self._potential(x, d)
         slope = float(g @ dx)
-        slack = 16 * np.finfo(np.float64).eps * scale
         alpha = 1.0
         for _ in range(LINE_SEARCH_HALVINGS):
             trial = x.copy()
             trial.reshape(-1)[self.free_dofs] += alpha * dx
-            if self._potential(trial, d)[0] <= E0 + 1e-4 * alpha * slope + slack:
+            E = self._potential(trial, d)[0]
+            if E <= E0 + 1e-4 * alpha * slope or (alpha * abs(slope) <= noise and E <= E0 + noise):
                 return trial
             alpha *= 0.5
         return trial

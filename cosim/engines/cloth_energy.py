@@ -23,11 +23,11 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-import jax.numpy as jnp  # noqa: E402  (float64 must be enabled before any array exists)
-import numpy as np  # noqa: E402
-import scipy.sparse as sp  # noqa: E402
+import jax.numpy as jnp  # float64 is enabled above, before any array exists
+import numpy as np
+import scipy.sparse as sp
 
-from cosim.engines.cloth_mesh import ClothMesh  # noqa: E402
+from cosim.engines.cloth_mesh import ClothMesh
 
 GUARD = 1e-8  # [1] regularises sqrt(det C) and sqrt(I1 + 2J) (see the module docstring)
 
@@ -82,7 +82,7 @@ _ANGLES = _chunked(hinge_angle)
 
 def element_dofs(elements: np.ndarray) -> np.ndarray:
     """(n, 3 k) global dof indices 3 v + axis of elements with k vertices each."""
-    return (3 * elements[:, :, None] + np.arange(3)).reshape(len(elements), -1)
+    return (3 * elements[:, :, None] + np.arange(3)).reshape(len(elements), 3 * elements.shape[1])
 
 
 class ElasticEnergy:
@@ -99,7 +99,11 @@ class ElasticEnergy:
         self._Dm_inv = mesh.Dm_inv
         self._area = mesh.rest_area
         A = mesh.rest_area[mesh.hinge_faces].sum(axis=1) if len(mesh.hinges) else np.zeros(0)
-        e = mesh.vertices[mesh.hinges[:, 1]] - mesh.vertices[mesh.hinges[:, 0]] if len(mesh.hinges) else np.zeros((0, 3))
+        e = (
+            mesh.vertices[mesh.hinges[:, 1]] - mesh.vertices[mesh.hinges[:, 0]]
+            if len(mesh.hinges)
+            else np.zeros((0, 3))
+        )
         self.hinge_weight = 3.0 * np.einsum("ij,ij->i", e, e) / np.maximum(A, 1e-300)
         self._weight = self.hinge_weight
         self.rest_angle = self.angles(mesh.vertices)
