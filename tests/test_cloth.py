@@ -324,3 +324,24 @@ def test_bad_meshes_raise_clear_errors(tmp_path):
         cloth_mesh.build(x, [[0, 1, 2], [1, 0, 3], [0, 1, 4]], "fan")
     with pytest.raises(ValueError, match=r"degenerate \(zero-area\) faces, first face 1"):
         cloth_mesh.build(x, [[0, 1, 2], [0, 1, 1]], "sliver")
+
+
+def test_engine_conforms_to_the_contract():
+    """Same names and types as the other engines: the Objective can take the cloth's parameters as they are."""
+    from cosim.engines.contract import Engine
+
+    engine = hanging_sheet(res=(3, 3), controls=[[0]])
+    assert isinstance(engine, Engine)
+    params = {p.name: p for p in engine.parameters()}
+    assert {(p.kind, p.key) for p in params.values()} == {
+        ("state", "x"),
+        ("state", "v"),
+        ("input", "action"),
+        *(("material", k) for k in MATERIAL_KEYS),
+    }
+    assert all(p.engine == "cloth" and p.scale > 0 for p in params.values())
+    assert set(engine.material()) == set(MATERIAL_KEYS)
+    _, record = engine.step({})
+    out = engine.vjp(record, {"state": engine.state()})
+    assert set(out) == {"state", "action", "forces", *MATERIAL_KEYS}
+    assert all(np.shape(out[k]) == np.shape(engine.material()[k]) for k in MATERIAL_KEYS)
