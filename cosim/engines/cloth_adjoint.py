@@ -77,8 +77,10 @@ class ClothAdjoint:
             "state": {"x": grad_x, "v": grad_v},
             "action": grad_action.reshape(-1),
             "forces": lam.copy(),
-            "k_stretch": np.array(-np.sum(lam * g_mem)),
-            "k_bend": np.array(-np.sum(lam * g_bend)),
-            "c_mass": np.array(-np.sum(lam * m * record.v_next)),
-            "density": np.array(-np.sum(lam * self.vertex_area[:, None] * accel)),
+            "material": {
+                "k_stretch": np.array(-np.sum(lam * g_mem)),
+                "k_bend": np.array(-np.sum(lam * g_bend)),
+                "c_mass": np.array(-np.sum(lam * m * record.v_next)),
+                "density": np.array(-np.sum(lam * self.vertex_area[:, None] * accel)),
+            },
         }
