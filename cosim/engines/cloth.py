@@ -54,6 +54,7 @@ import numpy as np
 from scipy.sparse.linalg import splu
 
 from cosim.engines.cloth_adjoint import SPD_LU, ClothAdjoint, _positive_definite
+from cosim.engines.cloth_contact import ContactSet, RigidContact
 from cosim.engines.cloth_energy import ElasticEnergy, SparsePattern, hessian_entries, project_psd
 from cosim.engines.cloth_mesh import ClothMesh
 from cosim.errors import InputError, SimulationError
@@ -96,6 +97,7 @@ class ClothRecord:
     iterations: int
     residual: float  # [N] ||grad E||_inf at the accepted iterate
     tolerance: float  # [N]
+    contacts: ContactSet | None = None
 
     @property
     def nbytes(self) -> int:
@@ -110,6 +112,7 @@ class _Step:
     x_hat: np.ndarray
     forces: np.ndarray
     material: ClothMaterial
+    contacts: ContactSet | None = None  # planes of rigid bodies this step (``attach_rigid_contact``)
     mass: np.ndarray = field(init=False)
 
 
@@ -165,6 +168,16 @@ class ClothEngine(ClothAdjoint):
         self.v = np.zeros((V, 3))
         self.steps = 0
         self.last_solve: dict = {}
+        self.contact: RigidContact | None = None
+        self._route = None
+
+    def attach_rigid_contact(self, planes_fn, thickness: float, route=None, friction: float = 0.0) -> None:
+        """Rigid bodies the cloth collides with (``cosim.engines.cloth_contact``): ``planes_fn(points)``
+        gives a step's contact planes; ``route(wrenches)`` -> {engine name: its forces}, with
+        ``wrenches(origins)`` the (bodies, 6) reaction about the given body origins, hands the reaction
+        to the engine that moves the bodies (None: prescribed bodies take none); ``friction`` mu."""
+        self.contact = RigidContact(self.mesh.faces, self.masses(), self.frame_dt, thickness, planes_fn, friction)
+        self._route = route
 
     def _indices(self, idx, what: str) -> np.ndarray:
         idx = np.asarray(idx, dtype=np.int64).reshape(-1)
@@ -222,13 +235,20 @@ class ClothEngine(ClothAdjoint):
         action, forces = self._inputs(inputs.get("action"), inputs.get("forces"))
         x_n, v_n, mat = self.x, self.v, self._material
         data = self._step_data(x_n, v_n, forces, mat)
+        if self.contact is not None:
+            data.contacts = self.contact.prepare(x_n)
         x_next, iterations, residual, tol = self._solve(data, self._prescribed_next(x_n, action))
         v_next = (x_next - x_n) / self.frame_dt
-        record = ClothRecord(self.steps, x_n, v_n, action, forces, x_next, v_next, mat, iterations, residual, tol)
+        record = ClothRecord(
+            self.steps, x_n, v_n, action, forces, x_next, v_next, mat, iterations, residual, tol, data.contacts
+        )
         self.last_solve = {"step": self.steps, "iterations": iterations, "residual": residual, "tolerance": tol}
         self.x, self.v = x_next, v_next
         self.steps += 1
-        return {"state": self.state()}, record
+        outputs = {"state": self.state()}
+        if self._route is not None and data.contacts is not None:
+            outputs["reactions"] = self._route(lambda origins: self.contact.wrenches(x_next, data.contacts, origins))
+        return outputs, record
 
     def _inputs(self, action, forces) -> tuple[np.ndarray, np.ndarray]:
         V = self.mesh.n_vertices
@@ -276,6 +296,7 @@ class ClothEngine(ClothAdjoint):
         inertia = 0.5 * np.sum(d.mass * dx_hat**2) / h**2 + 0.5 * mat.c_mass * np.sum(d.mass * dx_n**2) / h
         mem, bend = self.energy.energies(x)
         external = -np.sum(d.forces * x) - np.sum(d.mass * self.gravity * x)
+        contact = self.contact.energy(x, d.contacts) if d.contacts is not None else 0.0
         size = np.abs(x) + np.abs(d.x_hat)
         gross = (
             np.sum(d.mass * np.abs(dx_hat) * size) / h**2
@@ -284,20 +305,33 @@ class ClothEngine(ClothAdjoint):
             + mat.k_bend * bend
             + np.sum(np.abs(d.forces * x))
             + np.sum(np.abs(d.mass * self.gravity * x))
+            + contact
         )
-        return inertia + mat.k_stretch * mem + mat.k_bend * bend + external, 64 * np.finfo(np.float64).eps * gross
+        total = inertia + mat.k_stretch * mem + mat.k_bend * bend + external + contact
+        return total, 64 * np.finfo(np.float64).eps * gross
 
     def _gradient(self, x: np.ndarray, d: _Step) -> np.ndarray:
         """grad E (V, 3) [N]."""
         h, mat = self.frame_dt, d.material
         g_mem, g_bend = self.energy.gradients(x)
         inertia = d.mass * ((x - d.x_hat) / h**2 + mat.c_mass * (x - d.x_n) / h - self.gravity)
-        return inertia + mat.k_stretch * g_mem + mat.k_bend * g_bend - d.forces
+        g = inertia + mat.k_stretch * g_mem + mat.k_bend * g_bend - d.forces
+        if d.contacts is not None:
+            g += self.contact.gradient(x, d.contacts)
+        return g
 
-    def _element_hessians(self, x: np.ndarray, mat: ClothMaterial) -> np.ndarray:
-        """Flat entries of all exact element Hessians of Psi (membrane, then bending)."""
+    def _element_hessians(
+        self, x: np.ndarray, mat: ClothMaterial, contacts: ContactSet | None = None, project: bool = False
+    ) -> np.ndarray:
+        """Flat entries of all element Hessians of Psi (membrane with the rigid contacts' face blocks,
+        then bending), exact or (``project``) each projected to PSD (the contact blocks already are)."""
         H_mem, H_bend = self.energy.hessians(x)
-        return np.concatenate([mat.k_stretch * H_mem.ravel(), mat.k_bend * H_bend.ravel()])
+        if project:
+            H_mem, H_bend = project_psd(H_mem), project_psd(H_bend)
+        face = mat.k_stretch * H_mem
+        if contacts is not None:
+            face = face + self.contact.face_hessians(x, contacts, len(self.mesh.faces))
+        return np.concatenate([face.ravel(), mat.k_bend * H_bend.ravel()])
 
     def _mass_diagonal(self, mat: ClothMaterial) -> np.ndarray:
         """Diagonal of d^2 E / dx^2 from inertia and damping, over the free dofs."""
@@ -342,12 +376,9 @@ class ClothEngine(ClothAdjoint):
         """Newton direction over the free dofs: with the exact Hessian when it is positive definite (then
         Newton converges quadratically), else with the per-element PSD-projected one (always a descent
         direction; alone it converges only linearly once the exact Hessian would do)."""
-        H_mem, H_bend = self.energy.hessians(x)
         diagonal = self._mass_diagonal(d.material)
         for project in (False, True):
-            if project:
-                H_mem, H_bend = project_psd(H_mem), project_psd(H_bend)
-            entries = np.concatenate([d.material.k_stretch * H_mem.ravel(), d.material.k_bend * H_bend.ravel()])
+            entries = self._element_hessians(x, d.material, d.contacts, project)
             lu = splu(self._ff.matrix(entries, diagonal), **SPD_LU)
             if project or _positive_definite(lu):
                 return lu.solve(-g)

@@ -49,7 +49,7 @@ class ClothAdjoint:
         lam = np.zeros(3 * V)
         coupling = np.zeros(3 * V)
         if len(self.free_dofs):
-            entries = self._element_hessians(record.x_next, mat)
+            entries = self._element_hessians(record.x_next, mat, record.contacts)
             H = self._ff.matrix(entries, self._mass_diagonal(mat))
             try:
                 lu = splu(H, **SPD_LU)  # the usual case, and 2-3x faster than pivoting

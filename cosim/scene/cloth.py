@@ -57,7 +57,9 @@ def build_cloth(scene, index: int):
     ]
     chosen = np.concatenate([np.asarray(fixed, dtype=np.int64), *controls]) if controls else np.asarray(fixed)
     if len(np.unique(chosen)) != len(chosen):
-        raise SceneError(f"{key}: a vertex is both pinned and controlled, or in two controls; make the selections disjoint")
+        raise SceneError(
+            f"{key}: a vertex is both pinned and controlled, or in two controls; make the selections disjoint"
+        )
     m = spec.material
     material = ClothMaterial(k_stretch=m.stretch, k_bend=m.bend, c_mass=m.damping, density=m.density)
     engine = ClothEngine(
