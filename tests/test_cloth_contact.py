@@ -103,7 +103,9 @@ def reference_distance(x, a, b, c):
 
 # ---------------------------------------------------------------------------- a probe of the ti.funcs
 @ti.kernel
-def _probe(src: ti.template(), s: ti.i32, pts: ti.template(), pid: ti.template(), dps: ti.template(), out: ti.template()):
+def _probe(
+    src: ti.template(), s: ti.i32, pts: ti.template(), pid: ti.template(), dps: ti.template(), out: ti.template()
+):
     """L = sum_i 0.7 d_i + n_i . (0.3, -0.2, 0.5) + v_c,i . (0.4, 0.1, -0.6); each point also hands back
     the reaction dp_i (1 + d_i) (so the impulses depend on the geometry)."""
     for i in range(pts.shape[0]):
@@ -263,12 +265,12 @@ def test_moebius_strip_keeps_its_side_across_the_seam_and_flips_once_through_it(
 MODELS = ["grid", "particle", "forecast"]
 
 
-def cloth_scene(model, positions, velocity, trace=True, gravity=(0.0, -9.81, 0.0), stiffness=400.0):
+def cloth_scene(model, positions, velocity, gravity=(0.0, -9.81, 0.0), stiffness=400.0):
     """A block over a static 10 x 10 sheet (5 cm quads) under a contact model; the coupler and a
     stand-in cloth engine that never moves."""
     engine = mpm(positions, velocity, gravity)
     verts, faces = flat_sheet(10, 0.25, 0.75)
-    src = ClothBoundary(engine, verts, faces, trace=trace)
+    src = ClothBoundary(engine, verts, faces)
     cloth = SimpleNamespace(name="cloth", state=lambda: {"x": verts, "v": np.zeros_like(verts)})
     coupler = MPMClothCoupler(cloth)
     engine.attach_boundary(coupler.source, src)
@@ -278,6 +280,24 @@ def cloth_scene(model, positions, velocity, trace=True, gravity=(0.0, -9.81, 0.0
         ForecastContact(engine, [src], friction=0.3)
     else:
         ParticlePenalty(engine, [src], stiffness, friction=0.3)
+    return engine, src, coupler
+
+
+_SCENES: dict = {}
+
+
+def scene(model, positions, velocity, trace=True):
+    """One engine per contact model for the whole module (each new engine compiles its kernels anew,
+    ~10 s), reset to a block at ``positions`` and a fresh tracing state."""
+    if model not in _SCENES:
+        _SCENES[model] = cloth_scene(model, positions, velocity)
+    engine, src, coupler = _SCENES[model]
+    n = len(positions)
+    eye = np.broadcast_to(np.eye(3), (n, 3, 3)).copy()
+    vel = np.broadcast_to(np.asarray(velocity, dtype=float), positions.shape).copy()
+    engine.set_state({"x": positions, "v": vel, "C": np.zeros((n, 3, 3)), "F": eye})
+    coupler.set_state(None)
+    src.set_tracing(trace)
     return engine, src, coupler
 
 
@@ -298,7 +318,7 @@ def test_momentum_lost_by_the_block_is_the_cloth_impulse(model):
     """Third law: over 8 x 4 substeps (the penalty model acts once particles have crossed), the particles' momentum change minus gravity's M g t equals
     minus the summed per-vertex impulses on the cloth, to round-off (float64, no walls)."""
     x0 = block(SHEET_Y - 0.005)  # the lowest particles 1.1 cm above the sheet, 2.4 cm of fall
-    engine, src, coupler = cloth_scene(model, x0, (0.0, -1.5, 0.0))
+    engine, _src, coupler = scene(model, x0, (0.0, -1.5, 0.0))
     m = engine.mass[:, None]
     p0 = (m * engine.state()["v"]).sum(axis=0)
     K, dt, steps = 4, 5e-4, 8
@@ -307,6 +327,25 @@ def test_momentum_lost_by_the_block_is_the_cloth_impulse(model):
     gravity = m.sum() * np.array([0.0, -9.81, 0.0]) * steps * K * dt
     assert np.linalg.norm(impulse.sum(axis=0)) > 0.1 * np.linalg.norm(p0)  # a real collision
     assert np.abs(p1 - p0 - gravity + impulse.sum(axis=0)).max() < 1e-12 * np.abs(p0).max()
+
+
+def test_a_step_replays_bit_for_bit_from_its_boundary_input():
+    """The tracking state is part of a step's boundary input (the MPM's vjp recomputes a step from its
+    record): restoring the MPM state and writing the recorded input again gives the same particles and
+    the same tracking state after the step, bit for bit, while particles are crossing the sheet."""
+    engine, _src, coupler = scene("particle", block(SHEET_Y - 0.005), (0.0, -1.5, 0.0))
+    K, dt = 4, 5e-4
+    run(engine, coupler, 6, K, dt)
+    before, (states, _record) = engine.state(), coupler.boundary(dt, K)
+    inputs = {"dt": dt, "substeps": K, "impulse": None, "boundaries": {coupler.source: states}}
+    first, _ = engine.step(inputs)
+    engine.set_state(before)
+    again, _ = engine.step(inputs)
+    tracked = first["reactions"][coupler.source]["tracking"]
+    assert tracked["inside"].sum() > 0 and (tracked["face"] >= 0).sum() > 50  # tracing is at work
+    assert np.array_equal(first["state"]["x"], again["state"]["x"])
+    for key in tracked:
+        assert np.array_equal(tracked[key], again["reactions"][coupler.source]["tracking"][key])
 
 
 def wrong_side(x: np.ndarray, depth: float) -> int:
@@ -321,7 +360,7 @@ def test_the_sheet_stops_a_falling_block_only_with_tracing(model, trace):
     ends more than a quarter cell below it (the penalty model lets particles in that deep at most:
     its spring stops 1.5 m/s within v / sqrt(k g / dx) ~ 0.1 dx per particle layer). Without tracing
     the penalty model sees every crossed particle as legal on its new side and the block falls through."""
-    engine, src, coupler = cloth_scene(model, block(SHEET_Y + 0.01), (0.0, -1.5, 0.0), trace=trace)
+    engine, _src, coupler = scene(model, block(SHEET_Y + 0.01), (0.0, -1.5, 0.0), trace=trace)
     run(engine, coupler, 40, 10, 4e-4)
     x = engine.state()["x"]
     if trace:
@@ -380,9 +419,11 @@ def test_source_gradients_match_central_differences():
     g_pts = pts.grad.to_numpy()
     eps = 1e-6
     for which, g in (("x", grads["x"]), ("v", grads["v"]), ("pts", g_pts)):
-        base = {"x": verts, "v": vel, "pts": pts_np}[which]
-        direction = rng.standard_normal(base.shape)
-        args = lambda h: [verts + h * direction if which == "x" else verts, vel + h * direction if which == "v" else vel, pts_np + h * direction if which == "pts" else pts_np]  # noqa: E731
-        fd = (loss(*args(eps)) - loss(*args(-eps))) / (2 * eps)
+        inputs = {"x": verts, "v": vel, "pts": pts_np}
+        step = {which: rng.standard_normal(inputs[which].shape)}
+        plus = [inputs[k] + eps * step.get(k, 0.0) for k in ("x", "v", "pts")]
+        minus = [inputs[k] - eps * step.get(k, 0.0) for k in ("x", "v", "pts")]
+        fd = (loss(*plus) - loss(*minus)) / (2 * eps)
+        direction = step[which]
         assert abs(fd) > 1e-3, which
         assert abs(fd - (g * direction).sum()) < 1e-6 * abs(fd), (which, fd, (g * direction).sum())

@@ -89,6 +89,10 @@ class ClothBoundary:
         self.node_face = ti.field(ti.i32, shape=engine.nodes)
         self.real = self.query.real
 
+    def set_tracing(self, enabled: bool) -> None:
+        """Turn tracing on or off (off: every particle is legal on its current side; for comparisons)."""
+        self.tracer.enabled[None] = int(enabled)
+
     def max_step_travel(self) -> float:
         """[m] the bound on relative particle-cloth motion between traces: |v| dt of every particle near the
         cloth, and the cloth's vertex displacement per macro step, must stay below it."""

@@ -36,7 +36,7 @@ same); these kernels are never differentiated.
 import numpy as np
 import taichi as ti
 
-from cosim.couplers.cloth_mesh_query import CORNER, EDGE, INTERIOR, MeshQuery
+from cosim.couplers.cloth_mesh_query import CORNER, EDGE, MeshQuery
 from cosim.couplers.cloth_topology import ClothTopology
 from cosim.errors import SimulationError
 
@@ -54,7 +54,8 @@ class PenetrationTracer:
     def __init__(self, engine, query: MeshQuery, topology: ClothTopology, slots: int, enabled: bool = True):
         self.engine = engine
         self.query = query
-        self.enabled = bool(enabled)
+        self.enabled = ti.field(ti.i32, shape=())  # 0: every particle stays legal (comparisons only)
+        self.enabled[None] = int(enabled)
         self.slots = slots
         F, N = query.n_faces, engine.n_particles
         S, M = topology.star.shape[2], topology.max_neighbours
@@ -239,8 +240,7 @@ class PenetrationTracer:
                         if side == 0:
                             side = before
                         elif side != before and not self.on_open_boundary(f, region):
-                            if ti.static(self.enabled):
-                                inside = 1 - inside
+                            inside = self.enabled[None] * (1 - inside)
             self.face[p], self.side[p], self.inside[p] = face, side, inside
             if record:
                 self.face_s[slot, p], self.side_s[slot, p], self.inside_s[slot, p] = face, side, inside
