@@ -122,21 +122,24 @@ def neighbourhoods(
     for lo in range(0, F, chunk):
         rows = np.arange(lo, min(F, lo + chunk))
         dist, pred = dijkstra(graph, directed=True, indices=rows, limit=reach, return_predecessors=True)
-        # orientation: product of edge flags along the shortest path (pointer jumping)
-        ptr = np.where(pred < 0, -1, pred).astype(np.int64)
-        hit = edge_face[None] == ptr[:, :, None]  # (c, F, 3): which edge of g leads back to its parent
-        acc = np.where(ptr >= 0, (edge_flag[None] * hit).sum(axis=2), 1).astype(np.int32)
-        r = np.arange(len(rows))[:, None]
-        while (ptr >= 0).any():
-            valid = ptr >= 0
-            safe = np.where(valid, ptr, 0)
-            acc = np.where(valid, acc * acc[r, safe], acc)
-            ptr = np.where(valid, ptr[r, safe], -1)
+        r, g = np.nonzero(np.isfinite(dist))  # the reached (row, face) pairs, row-major
+        d, parent = dist[r, g], pred[r, g]
+        slot = np.full(dist.shape, -1, dtype=np.int64)
+        slot[r, g] = np.arange(len(r))
+        # orientation: product of the edge flags along the shortest path, by pointer jumping
+        up = np.where(parent >= 0, slot[r, np.maximum(parent, 0)], -1)
+        acc = np.where(parent >= 0, (edge_flag[g] * (edge_face[g] == parent[:, None])).sum(axis=1), 1)
+        while (up >= 0).any():
+            valid = up >= 0
+            safe = np.where(valid, up, 0)
+            acc = np.where(valid, acc * acc[safe], acc)
+            up = np.where(valid, up[safe], -1)
+        order = np.lexsort((d, r))  # per row, nearest first
+        bounds = np.searchsorted(r[order], np.arange(len(rows) + 1))
         for i in range(len(rows)):
-            reached = np.flatnonzero(np.isfinite(dist[i]))
-            reached = reached[np.argsort(dist[i, reached], kind="stable")]
-            rows_out.append(reached)
-            flags_out.append(acc[i, reached])
+            pick = order[bounds[i] : bounds[i + 1]]
+            rows_out.append(g[pick])
+            flags_out.append(acc[pick])
     M = max(len(x) for x in rows_out)
     if M > limit:
         raise ValueError(

@@ -106,8 +106,6 @@ class PenetrationTracer:
     def trace(self, src: int, s: int, first: bool, record: bool) -> None:
         """Trace the particles in slot ``src``; ``first``: the first observation of a macro step (only the
         mesh moved); ``record``: keep the result for substep s. Raises ``ClothTracingError``."""
-        self.errors.fill(0)
-        self.errors[1] = self.errors[3] = self.engine.n_particles
         self._trace(src, s % self.slots, int(first), int(record))
         lost, lost_p, fast, fast_p = (int(v) for v in self.errors.to_numpy())
         where = f"substep {s}" if record else "the end of the macro step"
@@ -207,6 +205,8 @@ class PenetrationTracer:
     def _trace(self, src: ti.i32, slot: ti.i32, first: ti.i32, record: ti.i32):
         e = self.engine
         band = self.query.band
+        for i in ti.static(range(2)):  # no error yet (counts 0, first particles past the last)
+            self.errors[2 * i], self.errors[2 * i + 1] = 0, e.n_particles
         for p in range(e.n_particles):
             x = e.x[src, p]
             if not first:
