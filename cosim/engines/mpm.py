@@ -36,8 +36,14 @@ class MPMRecord:
     @property
     def nbytes(self) -> int:
         arrays = list(self.state.values()) + ([] if self.impulse is None else [self.impulse])
-        arrays += [a for b in self.boundaries.values() for a in b.values()]
-        return sum(a.nbytes for a in arrays)
+        return sum(a.nbytes for a in arrays) + sum(_nbytes(b) for b in self.boundaries.values())
+
+
+def _nbytes(value) -> int:
+    """Bytes of the arrays in a source's boundary states (nested dicts allowed: a cloth's tracking state)."""
+    if isinstance(value, dict):
+        return sum(_nbytes(v) for v in value.values())
+    return getattr(value, "nbytes", 0)
 
 
 @ti.data_oriented

@@ -1,0 +1,210 @@
+"""A cloth as an MPM boundary source (``cosim.couplers.boundary``): unsigned distance plus traced sign.
+
+One body (n = 1) per cloth. The cloth is frozen during the MPM substeps of a macro
+step, so everything per vertex is per macro step, not per substep: positions
+``verts`` (V, 3) [m], velocities ``vel`` (V, 3) [m/s] and the reaction ``impulse``
+(V, 3) [N s], summed over the macro step (minus the momentum the contact gave the
+material). All three carry adjoints with gradients.
+
+What a contact model sees at a point x:
+
+- particle p (p >= 0; also its forecast look-ahead point x + dt v): the face p found
+  this substep (``PenetrationTracer``; a fixed face, so the closest point on it is
+  smooth in x and the vertices), the signed distance positive on p's legal side and
+  negative when p is inside (crossed), the normal towards the legal side. In the
+  face's interior the distance is the plane distance legal * n_f . (x - c), smooth
+  through the sheet, so a look-ahead point that crosses reads negative; on an edge or
+  corner it is legal * side(x) * |x - c| with side(x) from the closest-point
+  pseudo-normal (p's stored side on the open boundary, where going around is no
+  crossing).
+- grid node (p = -1; the grid model): the node's nearest face from a query at
+  ``write`` (nodes are fixed and the cloth frozen), two-sided: distance |x - c| and
+  the normal from the closest point towards the node, so approaching velocity is
+  removed on either side.
+- nothing within the band: distance ``FAR`` [m], no reaction.
+
+The contact velocity is the barycentric blend of the face's vertex velocities and the
+reaction -dp is split over the same three vertices with the same weights (which sum
+to one), so momentum balances between particles and cloth to round-off.
+
+Boundary states (``write``): {"x": (V, 3) [m], "v": (V, 3) [m/s], "tracking": {face,
+side, inside} (N,) int or None (fresh)}; reactions (``reactions(K)``): {"impulse":
+(V, 3) [N s] over the macro step, "tracking": the state after the step (not
+differentiable)}. The tracking state at the start of a step is an input, so the
+MPM's vjp, which writes the recorded states again and recomputes the substeps,
+replays the tracing bit for bit.
+"""
+
+import numpy as np
+import taichi as ti
+
+from cosim.couplers.cloth_mesh_query import INTERIOR, MeshQuery, closest_point_on_triangle
+from cosim.couplers.cloth_topology import build_topology
+from cosim.couplers.cloth_tracing import PenetrationTracer
+
+FAR = 1e30  # [m] the distance reported where no face is within the band
+TINY = 1e-30  # [m^2] keeps |x - c| differentiable at x = c
+
+
+@ti.data_oriented
+class ClothBoundary:
+    """The cloth ``faces`` (F, 3) with rest vertices ``verts`` (V, 3) [m] as a boundary of ``engine`` (3D).
+
+    ``band`` [m] (default one cell): faces are found within it; it must be at least the
+    contact model's threshold (forecast) or band (grid), and it is the largest distance
+    a particle or the sheet may move relative to each other between two traces
+    (``max_step_travel``). ``radius`` [m] (default 4 band): the geodesic radius of each
+    face's neighbourhood; consecutive closest points of a particle moving less than the
+    band lie within 3 bands of each other. ``trace=False`` turns tracing off (every
+    particle is legal on its current side; for comparisons only).
+    """
+
+    n = 1
+
+    def __init__(
+        self,
+        engine,
+        verts: np.ndarray,
+        faces: np.ndarray,
+        band: float | None = None,
+        radius: float | None = None,
+        requires_grad: bool | None = None,
+        trace: bool = True,
+        max_neighbours: int = 4096,
+    ):
+        if engine.dim != 3:
+            raise ValueError("a cloth boundary needs a 3D MPM engine")
+        self.engine = engine
+        self.band = float(engine.dx if band is None else band)
+        self.radius = float(4.0 * self.band if radius is None else radius)
+        grad = engine.cfg.requires_grad if requires_grad is None else bool(requires_grad)
+        self.topology = build_topology(verts, faces, self.radius, max_neighbours)
+        self.query = MeshQuery(self.topology.faces, len(verts), self.band, requires_grad=grad)
+        self.slots = engine.cfg.grad_substeps if engine.cfg.requires_grad else 2
+        self.tracer = PenetrationTracer(engine, self.query, self.topology, self.slots, enabled=trace)
+        self.tracer.neighbour_radius = self.radius
+        V = len(verts)
+        self.vel = ti.Vector.field(3, float, shape=V, needs_grad=grad)
+        self.impulse = ti.Vector.field(3, float, shape=V, needs_grad=grad)
+        self.node_face = ti.field(ti.i32, shape=engine.nodes)
+        self.real = self.query.real
+
+    def set_tracing(self, enabled: bool) -> None:
+        """Turn tracing on or off (off: every particle is legal on its current side; for comparisons)."""
+        self.tracer.enabled[None] = int(enabled)
+
+    def max_step_travel(self) -> float:
+        """[m] the bound on relative particle-cloth motion between traces: |v| dt of every particle near the
+        cloth, and the cloth's vertex displacement per macro step, must stay below it."""
+        return self.band
+
+    @property
+    def max_neighbours(self) -> int:
+        """Length of the padded neighbourhood lists (the largest neighbourhood, in faces)."""
+        return self.topology.max_neighbours
+
+    # ------------------------------------------------------------------ what a contact model asks
+    @ti.func
+    def _geometry(self, s, x, p):
+        """(face or -1, signed distance [m], unit normal towards the legal side, barycentrics) at x."""
+        f, side, legal = -1, 1, 1
+        if p >= 0:
+            k = s % self.slots
+            f, side = self.tracer.face_s[k, p], self.tracer.side_s[k, p]
+            legal = side * (1 - 2 * self.tracer.inside_s[k, p])
+        else:
+            f = self.node_face[ti.cast(x * self.engine.inv_dx + 0.5, ti.i32)]
+        d, n, bary = FAR, ti.Vector([0.0, 1.0, 0.0]), ti.Vector([0.0, 0.0, 0.0])
+        if f >= 0:
+            a, b, c = self.query.corners(f)
+            point, w, region = closest_point_on_triangle(x, a, b, c)
+            bary = w
+            diff = x - point
+            if region == INTERIOR:
+                nf = (b - a).cross(c - a)
+                nf = nf / ti.sqrt(nf.norm_sqr())
+                h = nf.dot(diff)
+                if p < 0:  # two-sided: towards the node
+                    legal = ti.select(h >= 0, 1, -1)
+                d, n = legal * h, legal * nf
+            else:
+                dist = ti.sqrt(diff.norm_sqr() + TINY)
+                sign = 1
+                if p >= 0:
+                    geo = self.tracer.side_of(f, region, diff)
+                    if geo == 0 or self.tracer.on_open_boundary(f, region):
+                        geo = side
+                    sign = legal * geo
+                d, n = sign * dist, (sign / dist) * diff
+        return f, d, n, bary
+
+    @ti.func
+    def distance(self, s, b: ti.template(), x, p):
+        _f, d, _n, _w = self._geometry(s, x, p)
+        return d
+
+    @ti.func
+    def distance_normal(self, s, b: ti.template(), x, p):
+        _f, d, n, _w = self._geometry(s, x, p)
+        return d, n
+
+    @ti.func
+    def contact_velocity(self, s, b: ti.template(), x, p):
+        f, _d, _n, w = self._geometry(s, x, p)
+        v = ti.Vector.zero(float, 3)
+        if f >= 0:
+            tri = self.query.faces[f]
+            v = w[0] * self.vel[tri[0]] + w[1] * self.vel[tri[1]] + w[2] * self.vel[tri[2]]
+        return v
+
+    @ti.func
+    def add_reaction(self, s, b: ti.template(), x, dp, p):
+        f, _d, _n, w = self._geometry(s, x, p)
+        if f >= 0:
+            tri = self.query.faces[f]
+            for k in ti.static(range(3)):
+                self.impulse[tri[k]] -= w[k] * dp
+
+    # ------------------------------------------------------------------ the MPM engine's side
+    def write(self, states: dict) -> None:
+        """The cloth for this macro step: x (V, 3) [m], v (V, 3) [m/s], tracking (or None); clears the
+        reactions, rebuilds the face hash and queries the grid nodes. The mesh motion is traced before
+        the first substep (``before_substep(src, 0)``), when the particles' slot is known."""
+        x = np.asarray(states["x"], dtype=np.float64)
+        self.query.update(x)
+        self.vel.from_numpy(np.asarray(states["v"], dtype=self.real))
+        self.impulse.fill(0)
+        self.tracer.mesh_moved(x)
+        self.tracer.set_state(states.get("tracking"))
+        self._query_nodes()
+
+    def before_substep(self, src: int, s: int) -> None:
+        """Trace the particles in slot ``src`` for substep s (s = 0: the mesh moved, the particles not)."""
+        self.tracer.trace(src, s, first=s == 0, record=True)
+
+    def reactions(self, K: int) -> dict:
+        """{"impulse": (V, 3) [N s] over the macro step, "tracking": the state after its last substep}."""
+        self.tracer.trace(self.engine._slot, K, first=False, record=False)  # the last substep's motion
+        return {"impulse": self.impulse.to_numpy().astype(np.float64), "tracking": self.tracer.state()}
+
+    def zero_grad(self) -> None:
+        for fld in (self.query.verts, self.vel, self.impulse):
+            fld.grad.fill(0)
+
+    def seed_reaction_grads(self, grads: dict[str, np.ndarray]) -> None:
+        """dL/d(impulse) (V, 3), after ``zero_grad``."""
+        self.impulse.grad.from_numpy(np.asarray(grads["impulse"], dtype=self.real))
+
+    def state_grads(self, K: int) -> dict[str, np.ndarray]:
+        """dL/dx, dL/dv (V, 3) of the cloth states written for the step, after a vjp."""
+        return {
+            "x": self.query.verts.grad.to_numpy().astype(np.float64),
+            "v": self.vel.grad.to_numpy().astype(np.float64),
+        }
+
+    @ti.kernel
+    def _query_nodes(self):
+        e = self.engine
+        for I in ti.grouped(self.node_face):
+            f, _d2, _w, _r = self.query.nearest(ti.cast(I, float) * e.dx)
+            self.node_face[I] = f

@@ -1,0 +1,252 @@
+"""Penetration tracing: which side of a cloth each MPM particle belongs on (SoftMAC, with the fixes below).
+
+A sheet has no inside, so a particle's signed distance needs a remembered state:
+per particle a reference face, its side of that face (+1 / -1 in the face's own
+winding) and ``inside`` (1 = it is on the wrong side, it crossed the sheet). Each
+time particles move (before every MPM substep, the particles of the previous one
+having moved) or the mesh moves (the first trace of a macro step: particles as they
+ended the last step, the new mesh), a particle within the band finds its nearest face
+f'. If f' is the reference face or in its neighbourhood (``cloth_topology``), its side
+of f' is compared with the stored side carried to f' by the neighbourhood's
+orientation flag; a change flips ``inside``. If f' is not in the neighbourhood the
+crossing could not be seen: the run stops (``ClothTracingError``).
+
+Fixes over SoftMAC's tracing:
+- the side is taken against the closest-point normal (the face normal in the face's
+  interior, the pseudo-normal of the faces around an edge or vertex, each oriented
+  like the face through the BFS flags), not against a neighbour's plane;
+- a side change seen at the open boundary (closest point on a free edge or its
+  vertices) is a particle going around the sheet's edge, not through it: the side
+  is updated, ``inside`` is kept;
+- a particle that moved at least the band since its last observation while near the
+  mesh stops the run: that is the bound under which no crossing goes unseen.
+
+Leaving the band resets the state (face -1, inside 0), as SoftMAC does: outside the
+band there is nothing to trace against, and a state kept there would be compared
+with a face arbitrarily far away on return. Since a particle moves less than the
+band between observations, and the mesh moves less than the band per macro step
+(both are the integrator's bound, ``max_step_travel``), a particle entering the band
+has not crossed: it is legal where it is.
+
+The per-substep result (face, side, inside) is kept in (slots, N) fields that the
+differentiated contact kernels of that substep read (and their adjoints read the
+same); these kernels are never differentiated.
+"""
+
+import numpy as np
+import taichi as ti
+
+from cosim.couplers.cloth_mesh_query import CORNER, EDGE, MeshQuery
+from cosim.couplers.cloth_topology import ClothTopology
+from cosim.errors import SimulationError
+
+TRACKING_KEYS = ("face", "side", "inside")
+
+
+class ClothTracingError(SimulationError):
+    """Tracing lost a particle: it crossed or may have crossed the sheet unseen."""
+
+
+@ti.data_oriented
+class PenetrationTracer:
+    """Tracing state of ``engine``'s particles against the mesh of ``query`` (see the module docstring)."""
+
+    def __init__(self, engine, query: MeshQuery, topology: ClothTopology, slots: int, enabled: bool = True):
+        self.engine = engine
+        self.query = query
+        self.enabled = ti.field(ti.i32, shape=())  # 0: every particle stays legal (comparisons only)
+        self.enabled[None] = int(enabled)
+        self.slots = slots
+        F, N = query.n_faces, engine.n_particles
+        S, M = topology.star.shape[2], topology.max_neighbours
+        self.S, self.M = S, M
+        self.edge_face = _int_field((F, 3), topology.edge_face)
+        self.edge_flag = _int_field((F, 3), topology.edge_flag)
+        self.vertex_boundary = _int_field((F, 3), topology.vertex_boundary)
+        self.star = _int_field((F, 3, S), topology.star)
+        self.star_flag = _int_field((F, 3, S), topology.star_flag)
+        self.neighbours = _int_field((F, M), topology.neighbours)
+        self.neighbour_flag = _int_field((F, M), topology.neighbour_flag)
+        # closest-point normals of the current mesh (for sides only: never differentiated)
+        self.face_normal = ti.Vector.field(3, float, shape=F)
+        self.corner_angle = ti.field(float, shape=(F, 3))
+        self.edge_normal = ti.Vector.field(3, float, shape=(F, 3))
+        self.vertex_normal = ti.Vector.field(3, float, shape=(F, 3))
+        # the state (between observations) and its per-substep copies
+        self.face = ti.field(ti.i32, shape=N)
+        self.side = ti.field(ti.i32, shape=N)
+        self.inside = ti.field(ti.i32, shape=N)
+        self.last_x = ti.Vector.field(3, float, shape=N)
+        self.face_s = ti.field(ti.i32, shape=(slots, N))
+        self.side_s = ti.field(ti.i32, shape=(slots, N))
+        self.inside_s = ti.field(ti.i32, shape=(slots, N))
+        self.box = ti.Vector.field(3, float, shape=2)  # the mesh's bounding box grown by the band
+        self.errors = ti.field(ti.i32, shape=4)  # lost count, first lost particle, fast count, first fast particle
+        self.real = query.real
+
+    # ------------------------------------------------------------ host
+    def set_state(self, tracking: dict | None) -> None:
+        """Start from ``tracking`` {face, side, inside} (N,) int, or fresh (no particle near the sheet)."""
+        N = self.engine.n_particles
+        fresh = {"face": np.full(N, -1, np.int32), "side": np.zeros(N, np.int32), "inside": np.zeros(N, np.int32)}
+        tracking = fresh if tracking is None else tracking
+        for key in TRACKING_KEYS:
+            getattr(self, key).from_numpy(np.ascontiguousarray(tracking[key], dtype=np.int32))
+
+    def state(self) -> dict[str, np.ndarray]:
+        return {key: getattr(self, key).to_numpy().astype(np.int32) for key in TRACKING_KEYS}
+
+    def mesh_moved(self, verts: np.ndarray) -> None:
+        """The mesh (already in ``query``) has new positions ``verts``: refresh its normals and box."""
+        band = self.query.band
+        self.box.from_numpy(np.stack([verts.min(axis=0) - band, verts.max(axis=0) + band]).astype(self.real))
+        self._face_normals()
+        self._pseudo_normals()
+
+    def trace(self, src: int, s: int, first: bool, record: bool) -> None:
+        """Trace the particles in slot ``src``; ``first``: the first observation of a macro step (only the
+        mesh moved); ``record``: keep the result for substep s. Raises ``ClothTracingError``."""
+        self._trace(src, s % self.slots, int(first), int(record))
+        lost, lost_p, fast, fast_p = (int(v) for v in self.errors.to_numpy())
+        where = f"substep {s}" if record else "the end of the macro step"
+        if fast:
+            raise ClothTracingError(
+                f"cloth tracing: particle {fast_p} (and {fast - 1} more) moved at least the tracing band "
+                f"{self.query.band:.3g} m near the cloth before {where}; a crossing could go unseen: use smaller "
+                "substeps (|v| dt < band, see max_step_travel) or a larger band"
+            )
+        if lost:
+            x = self.engine.x.to_numpy()[src, lost_p]
+            raise ClothTracingError(
+                f"cloth tracing: particle {lost_p} (and {lost - 1} more) at {np.round(x, 4).tolist()} is nearest "
+                f"to a face outside the neighbourhood of its last face {self.face[lost_p]} at {where}: it moved "
+                f"across the sheet farther than tracing can follow; use smaller substeps or a larger search radius "
+                f"(now {self.neighbour_radius:.3g} m)"
+            )
+
+    neighbour_radius = 0.0  # [m] set by the owner, for messages
+
+    # ------------------------------------------------------------ normals of the current mesh
+    @ti.kernel
+    def _face_normals(self):
+        for f in range(self.query.n_faces):
+            a, b, c = self.query.corners(f)
+            n = (b - a).cross(c - a)
+            self.face_normal[f] = n / ti.sqrt(n.norm_sqr() + 1e-300)
+            corners = [a, b, c]
+            for k in ti.static(range(3)):
+                u, w = corners[(k + 1) % 3] - corners[k], corners[(k + 2) % 3] - corners[k]
+                self.corner_angle[f, k] = ti.atan2(u.cross(w).norm(), u.dot(w))
+
+    @ti.kernel
+    def _pseudo_normals(self):
+        for f, k in ti.ndrange(self.query.n_faces, 3):
+            n = self.face_normal[f]
+            g = self.edge_face[f, k]
+            if g >= 0:
+                n += self.edge_flag[f, k] * self.face_normal[g]
+            self.edge_normal[f, k] = n
+            v = self.query.faces[f][k]
+            m = ti.Vector.zero(float, 3)
+            for j in range(self.S):
+                h = self.star[f, k, j]
+                if h >= 0:
+                    tri = self.query.faces[h]
+                    corner = 0
+                    for i in ti.static(range(3)):
+                        if tri[i] == v:
+                            corner = i
+                    m += self.star_flag[f, k, j] * self.corner_angle[h, corner] * self.face_normal[h]
+            self.vertex_normal[f, k] = m
+
+    # ------------------------------------------------------------ what a side is
+    @ti.func
+    def side_of(self, f, region, diff):
+        """+1 / -1: the side of face f (in f's winding) of a point at diff = x - closest point, against
+        the closest-point normal of ``region``; 0 when the point is on it."""
+        n = self.face_normal[f]
+        if region >= EDGE:
+            n = self.edge_normal[f, region - EDGE]
+        elif region >= CORNER:
+            n = self.vertex_normal[f, region - CORNER]
+        h = n.dot(diff)
+        out = 0
+        if h > 0:
+            out = 1
+        elif h < 0:
+            out = -1
+        return out
+
+    @ti.func
+    def on_open_boundary(self, f, region):
+        """1 when the closest point is on a free edge of the sheet or one of its vertices."""
+        out = 0
+        if region >= EDGE:
+            out = ti.cast(self.edge_face[f, region - EDGE] < 0, ti.i32)
+        elif region >= CORNER:
+            out = self.vertex_boundary[f, region - CORNER]
+        return out
+
+    @ti.func
+    def relative_flag(self, ref, f):
+        """Winding of face f relative to face ref (+1 / -1), 0 when f is outside ref's neighbourhood."""
+        out = 0
+        for j in range(self.M):
+            g = self.neighbours[ref, j]
+            if g == f:
+                out = self.neighbour_flag[ref, j]
+                break
+            if g < 0:
+                break
+        return out
+
+    # ------------------------------------------------------------ the update
+    @ti.kernel
+    def _trace(self, src: ti.i32, slot: ti.i32, first: ti.i32, record: ti.i32):
+        e = self.engine
+        band = self.query.band
+        for i in ti.static(range(2)):  # no error yet (counts 0, first particles past the last)
+            self.errors[2 * i], self.errors[2 * i + 1] = 0, e.n_particles
+        for p in range(e.n_particles):
+            x = e.x[src, p]
+            if not first:
+                x0 = self.last_x[p]
+                near = 1
+                for i in ti.static(range(3)):
+                    if ti.max(x[i], x0[i]) < self.box[0][i] or ti.min(x[i], x0[i]) > self.box[1][i]:
+                        near = 0
+                if near and (x - x0).norm_sqr() >= band * band:
+                    ti.atomic_add(self.errors[2], 1)
+                    ti.atomic_min(self.errors[3], p)
+            self.last_x[p] = x
+            f, _d2, bary, region = self.query.nearest(x)
+            ref, side, inside = self.face[p], 0, 0
+            face = f
+            if f >= 0:
+                a, b, c = self.query.corners(f)
+                side = self.side_of(f, region, x - (bary[0] * a + bary[1] * b + bary[2] * c))
+                if ref < 0:  # entering the band: legal where it is
+                    if side == 0:
+                        side = 1
+                else:
+                    flag = self.relative_flag(ref, f)
+                    if flag == 0:  # a jump tracing cannot follow: keep the state, report
+                        ti.atomic_add(self.errors[0], 1)
+                        ti.atomic_min(self.errors[1], p)
+                        face, side, inside = ref, self.side[p], self.inside[p]
+                    else:
+                        before = flag * self.side[p]
+                        inside = self.inside[p]
+                        if side == 0:
+                            side = before
+                        elif side != before and not self.on_open_boundary(f, region):
+                            inside = self.enabled[None] * (1 - inside)
+            self.face[p], self.side[p], self.inside[p] = face, side, inside
+            if record:
+                self.face_s[slot, p], self.side_s[slot, p], self.inside_s[slot, p] = face, side, inside
+
+
+def _int_field(shape: tuple, values: np.ndarray):
+    fld = ti.field(ti.i32, shape=shape)
+    fld.from_numpy(np.ascontiguousarray(values, dtype=np.int32))
+    return fld
