@@ -43,6 +43,8 @@ class Recorder:
         self.times: list[float] = []
         self.energy: list[dict] = []
         self.rigid_poses: list[list[tuple[np.ndarray, np.ndarray]]] = []
+        self.cloths = cloth_engines(sim)
+        self.cloth_frames: list[list[np.ndarray]] = []  # per frame, each cloth's vertex positions
 
     def __call__(self, step_index: int) -> None:
         from cosim.diagnostics import energies
@@ -53,6 +55,7 @@ class Recorder:
         self.energy.append(energies(self.sim.mpm, state, self.sim.scene.gravity))
         if self.sim.rigid is not None:
             self.rigid_poses.append(self.sim.rigid.poses())
+        self.cloth_frames.append([c.state()["x"].copy() for c in self.cloths])
 
     def wants(self, step_index: int) -> bool:
         """Save after macro step ``step_index`` (1-based)? Every output.every, and the last."""
@@ -73,6 +76,11 @@ class Recorder:
             for b, name in enumerate(rigid.names):
                 arrays[f"rigid_pos_{name}"] = np.stack([poses[b][0] for poses in self.rigid_poses])
                 arrays[f"rigid_rot_{name}"] = np.stack([poses[b][1] for poses in self.rigid_poses])
+        if self.cloths:
+            arrays["cloth_names"] = np.asarray([c.name for c in self.cloths])
+            for i, cloth in enumerate(self.cloths):
+                arrays[f"cloth_x_{cloth.name}"] = np.stack([f[i] for f in self.cloth_frames]).astype(np.float32)
+                arrays[f"cloth_faces_{cloth.name}"] = np.asarray(cloth.mesh.faces, dtype=np.int32)
         np.savez_compressed(out_dir / "trajectory.npz", **arrays)
         if not preview or scene.output.preview == "none":
             return None
@@ -81,7 +89,13 @@ class Recorder:
         spacing = min(b.spacing or 0.5 * scene.dx for b in scene.mpm.bodies)
         path = write_preview(
             out_dir / f"preview.{scene.output.preview}",
-            preview_frames(self.frames, self.times, self.sim.rigid, self.rigid_poses),
+            preview_frames(
+                self.frames,
+                self.times,
+                self.sim.rigid,
+                self.rigid_poses,
+                [[(x, c.mesh.faces) for x, c in zip(xs, self.cloths)] for xs in self.cloth_frames],
+            ),
             np.asarray(scene.cells) * scene.dx,
             spacing,
             scene.output.resolution,
@@ -91,9 +105,15 @@ class Recorder:
         return path.name
 
 
-def preview_frames(frames: list[list[np.ndarray]], times, rigid=None, rigid_poses=None) -> list:
+def cloth_engines(sim) -> list:
+    """The system's cloth engines (those with a triangle ``mesh``), in stepping order."""
+    return [e for e in sim.engines.values() if hasattr(e, "mesh")]
+
+
+def preview_frames(frames: list[list[np.ndarray]], times, rigid=None, rigid_poses=None, cloths=None) -> list:
     """``render.Frame``s of saved frames: particle positions per body, and the rigid bodies'
-    surfaces (``rigid``: a ``RigidBodies`` with its SDF grids; ``rigid_poses``: per frame, their poses)."""
+    surfaces (``rigid``: a ``RigidBodies`` with its SDF grids; ``rigid_poses``: per frame, their poses)
+    and cloth meshes (``cloths``: per frame, a list of (vertices, faces))."""
     from cosim.render import Frame
 
     geometry = [[] for _ in frames]
@@ -101,7 +121,11 @@ def preview_frames(frames: list[list[np.ndarray]], times, rigid=None, rigid_pose
         from cosim.render.surfaces import rigid_geometry
 
         geometry = rigid_geometry(rigid.grids, rigid_poses, rigid.dim)
-    return [Frame.from_bodies(f, rigid=g, label=f"t = {t:.3f} s") for f, t, g in zip(frames, times, geometry)]
+    cloths = cloths or [[] for _ in frames]
+    return [
+        Frame.from_bodies(f, rigid=g, cloth=c, label=f"t = {t:.3f} s")
+        for f, t, g, c in zip(frames, times, geometry, cloths)
+    ]
 
 
 def up_axis(gravity) -> np.ndarray:
@@ -174,6 +198,11 @@ def run_scene(
             metrics["particles_elsewhere"] = (
                 len(x) - sum(held.values()) - sum(metrics["particles_inside_rigid"].values())
             )
+    cloths = cloth_engines(sim)
+    if cloths:
+        metrics["contact_model"] = scene.contact.model
+        metrics["penetration_tracing"] = scene.contact.tracing
+        metrics["cloth"] = {c.name: cloth_metrics(sim, c) for c in cloths}
     if "dart" in sim.engines:
         engine = sim.engines["dart"]
         metrics["joint_positions"] = {
@@ -184,3 +213,12 @@ def run_scene(
         metrics["preview"] = name
     (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
     return metrics
+
+
+def cloth_metrics(sim, cloth) -> dict:
+    """Vertices, the last Newton solve, and how many particles sit on the wrong side of the sheet
+    (traced ``inside``) at the end."""
+    coupler = next(c for c in sim.couplers if getattr(c, "engine", None) == cloth.name and hasattr(c, "state"))
+    tracking = coupler.state()
+    inside = 0 if tracking is None else int(np.count_nonzero(tracking["inside"]))
+    return {"vertices": int(cloth.mesh.n_vertices), "last_solve": cloth.last_solve, "particles_inside": inside}

@@ -6,9 +6,11 @@ through their contracts (``cosim.engines.contract``)::
     for c in couplers:   boundaries[c.source] = c.boundary(dt, K)
     s_M', reactions    = mpm.step(s_M, boundaries, impulse)
     for c in couplers:   forces[c.engine] += c.forces(reactions[c.source])
-    for e in engines:    s_e' = e.step(s_e, action_e, forces[e])
+    for e in engines:    s_e' = e.step(s_e, action_e, forces[e])   (in order; an engine's output
+                         "reactions" {later engine: forces} adds to that engine's forces)
 
-and its reverse (``vjp``). It picks the substep count K from the CFL bound (or checks a
+and its reverse (``vjp``; engine-to-engine reactions, a cloth's contact on rigid links, are
+not differentiated). It picks the substep count K from the CFL bound (or checks a
 fixed one) and stops with a ``SimulationError`` naming the step, the body and the
 quantity as soon as a step produces NaN/inf, violates the CFL bound or leaves the grid.
 ``rollout`` is the one loop behind ``cosim run``, the objective, gradcheck, optimize and
@@ -228,11 +230,16 @@ class CoupledSystem:
                 f = c.forces(coupler_records[c.name], outputs["reactions"][c.source])
                 if f is not None:
                     forces[c.engine] = f if forces.get(c.engine) is None else forces[c.engine] + f
-        engine_records = {}
+        engine_records, stepped = {}, set()
         for name, engine in self.engines.items():
             act = actions[name] if actions is not None and name in actions else self.action(name, self.step_index)
             with self._timed(name):
-                _, engine_records[name] = engine.step({"action": act, "forces": forces.get(name)})
+                engine_out, engine_records[name] = engine.step({"action": act, "forces": forces.get(name)})
+            stepped.add(name)
+            for target, f in (engine_out.get("reactions") or {}).items():  # e.g. a cloth pressing on DART links
+                if target in stepped:
+                    raise RuntimeError(f"engine '{name}' hands forces to '{target}', which steps before it")
+                forces[target] = f if forces.get(target) is None else forces[target] + f
         self.max_cfl = max(self.max_cfl, cfl)
         self.step_index += 1
         self.last = StepRecord(t0, mpm_record, engine_records, coupler_records, {"reactions": outputs["reactions"]})

@@ -76,6 +76,7 @@ class ClothBoundary:
             raise ValueError("a cloth boundary needs a 3D MPM engine")
         self.engine = engine
         self.band = float(engine.dx if band is None else band)
+        self.grid_band = self.band  # the grid model constrains nodes within the band on either side
         self.radius = float(4.0 * self.band if radius is None else radius)
         grad = engine.cfg.requires_grad if requires_grad is None else bool(requires_grad)
         self.topology = build_topology(verts, faces, self.radius, max_neighbours)

@@ -35,7 +35,8 @@ def frictional_bc(v, n, vc, friction):
 @ti.data_oriented
 class GridContact:
     """Grid contact model: at grid nodes with signed distance below ``band`` (default half a
-    cell: nodes strictly inside let a thick wall be entered by 0.8 dx, measured), the
+    cell: nodes strictly inside let a thick wall be entered by 0.8 dx, measured; a source may
+    set its own ``grid_band``: a cloth, two-sided and thin, needs a full cell), the
     velocity relative to the body loses its approaching normal part and its tangential
     part is reduced by Coulomb friction: v_t * max(0, 1 - mu |v_n| / |v_t|)."""
 
@@ -59,7 +60,7 @@ class GridContact:
                 for src in ti.static(self.sources):
                     for b in ti.static(range(src.n)):
                         d, n = src.distance_normal(s, b, xi, -1)
-                        if d < self.band:
+                        if d < ti.static(getattr(src, "grid_band", self.band)):
                             v_new = frictional_bc(v, n, src.contact_velocity(s, b, xi, -1), self.friction)
                             dp = m * (v_new - v)  # momentum given to the material
                             src.add_reaction(s, b, xi, dp, -1)

@@ -19,6 +19,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from cosim.errors import SimulationError
+
 
 @dataclass
 class ClothCouplingRecord:
@@ -34,10 +36,11 @@ class MPMClothCoupler:
     """Joins the cloth engine ``cloth`` (anything with ``name`` and ``state()`` -> {x, v}) to the MPM through
     the boundary source attached under ``name`` (default: the cloth engine's name)."""
 
-    def __init__(self, cloth, name: str | None = None):
+    def __init__(self, cloth, name: str | None = None, max_travel: float = np.inf):
         self.cloth = cloth
         self.engine = cloth.name
         self.name = self.source = name or cloth.name
+        self.max_travel = float(max_travel)  # [m] per frame: the tracing band (``ClothBoundary.max_step_travel``)
         self._tracking: dict | None = None
 
     def state(self) -> dict | None:
@@ -51,6 +54,13 @@ class MPMClothCoupler:
     def boundary(self, dt: float, substeps: int) -> tuple[dict, ClothCouplingRecord]:
         """The cloth's current vertex positions and velocities and the tracing state, for the MPM step."""
         s = self.cloth.state()
+        travel = float(np.linalg.norm(s["v"], axis=1).max()) * dt * substeps
+        if travel > self.max_travel:
+            raise SimulationError(
+                f"cloth '{self.engine}' moves up to {travel:.3g} m in one frame, more than the tracing band "
+                f"{self.max_travel:.3g} m: particles near it could cross it unseen; lower time.frame_dt or slow "
+                "the cloth's controls"
+            )
         states = {"x": np.array(s["x"], dtype=np.float64), "v": np.array(s["v"], dtype=np.float64)}
         states["tracking"] = self._tracking
         return states, ClothCouplingRecord(dt, substeps)

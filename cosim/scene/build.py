@@ -140,6 +140,8 @@ def build_system(scene: Scene, requires_grad: bool = False, steps: int | None = 
 
         rigid = RigidBodies(parts.names, parts.shapes, parts.grids, parts.kinematic, parts.dart_coupler, scene.dim)
         _check_start_outside_rigid(rigid, mpm.state()["x"], scene.dx)
+        for cloth_index, cloth in enumerate(parts.cloths):
+            _attach_cloth_rigid_contact(scene, scene.cloth[cloth_index], cloth, rigid)
     domain = np.asarray(scene.cells) * scene.dx
     return CoupledSystem(
         mpm, parts.engines, parts.couplers, stepping, scene.gravity, domain, steps, controls, parts.plans, scene, rigid
@@ -207,10 +209,10 @@ def build_manipulators(scene: Scene, mpm, stepping: Stepping) -> Manipulators:
     slots = max(scene.time.max_substeps, stepping.grad_substeps)
     if scene.rigid is not None and scene.rigid.bodies:
         _add_kinematic(scene, mpm, out, slots, stepping.requires_grad)
+    for i in range(len(scene.cloth)):  # before DART: a cloth's reaction on DART links enters the same step
+        _add_cloth(scene, i, mpm, out)
     if scene.articulated is not None:
         _add_articulated(scene, mpm, out, slots, stepping.requires_grad)
-    for i in range(len(scene.cloth)):
-        _add_cloth(scene, i, mpm, out)
     if out.sources:  # with nothing the MPM sees, no contact hook
         attach_contact(mpm, out.sources, scene.contact)
     return out
@@ -275,10 +277,42 @@ def _add_cloth(scene: Scene, index: int, mpm, out: Manipulators) -> None:
     if plan is not None:
         out.plans[engine.name] = plan
     source = ClothBoundary(mpm, engine.mesh.vertices, engine.mesh.faces, trace=scene.contact.tracing)
-    coupler = MPMClothCoupler(engine)
+    coupler = MPMClothCoupler(engine, max_travel=source.max_step_travel())
     mpm.attach_boundary(coupler.source, source)
     out.couplers.append(coupler)
     out.sources.append(source)
+
+
+def _attach_cloth_rigid_contact(scene: Scene, spec, cloth, rigid) -> None:
+    """Let a cloth collide with the rigid bodies the MPM sees that have a scene shape (python-fcl
+    planes, ``cosim.couplers.cloth_rigid``); DART links take the reaction, kinematic bodies none."""
+    from cosim.couplers.cloth_rigid import RigidObstacles
+
+    bodies = [i for i, shape in enumerate(rigid.shapes) if shape is not None and shape.type != "ring"]
+    if not bodies:
+        return
+    obstacles = RigidObstacles([rigid.shapes[i] for i in bodies], scene.source_dir, [rigid.names[i] for i in bodies])
+    thickness = spec.thickness or 0.5 * scene.dx
+    n_kinematic = len(rigid.kinematic.motions) if rigid.kinematic is not None else 0
+
+    def planes(points):
+        poses = rigid.poses()
+        return obstacles.planes(points, [poses[i] for i in bodies], thickness)
+
+    route = None
+    coupler = rigid.coupler
+    if coupler is not None and any(i >= n_kinematic for i in bodies):
+
+        def route(wrenches):
+            poses = rigid.poses()
+            w = wrenches(np.array([poses[i][0] for i in bodies]))
+            full = np.zeros((len(coupler.rigid.body_names), 6))
+            for row, i in enumerate(bodies):
+                if i >= n_kinematic:
+                    full[coupler.coupled[i - n_kinematic]] += w[row]
+            return {coupler.engine: full}
+
+    cloth.attach_rigid_contact(planes, thickness, route, scene.contact.friction)
 
 
 def _check_start_outside_rigid(rigid, x: np.ndarray, dx: float) -> None:
