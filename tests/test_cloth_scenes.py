@@ -2,12 +2,11 @@
 
 import numpy as np
 import pytest
+from conftest import SCENES
 from scipy.interpolate import LinearNDInterpolator
 
 from cosim.scene import load_scene
 from cosim.scene.build import build_system
-
-from conftest import SCENES
 
 
 def _squash(contact: dict):
