@@ -93,7 +93,7 @@ def cmd_gradcheck(args) -> int:
     sim = build_system(scene, requires_grad=True, steps=steps)
     obj = Objective(sim)
     params = obj.initial_params()
-    names = [p for p in scene.gradient.params if p in params]
+    names = obj.select(scene.gradient.params)
     print(f"gradcheck {scene.name}: {steps} steps x {sim.grad_substeps} substeps, float64, loss {scene.loss.type}")
     results = check_gradients(
         obj.evaluate, params, names, obj.natural_scales(), args.directions or scene.gradient.directions
@@ -132,7 +132,7 @@ def cmd_optimize(args) -> int:
     sim = build_system(scene, requires_grad=True, steps=args.steps)
     obj = Objective(sim)
     params = obj.initial_params()
-    names = [p for p in spec.params if p in params]
+    names = obj.select(spec.params)
     if not names:
         raise SceneError(f"optimize.params: none of {spec.params} exists in this scene (impulse needs controls)")
     iterations = args.iters or spec.iterations

@@ -46,6 +46,11 @@ class Objective:
         self.loss = loss
         self.tape = Tape()
 
+    def select(self, names: list[str]) -> list[str]:
+        """The declared parameters a scene's ``params`` list asks for: named ``p`` or "<engine>.p"."""
+        wanted = set(names)
+        return [n for n in self.parameters if n in wanted or n.split(".", 1)[-1] in wanted]
+
     def initial_params(self) -> dict[str, np.ndarray]:
         """Every declared parameter's value in the scene as built."""
         out = {}

@@ -58,8 +58,9 @@ def adam(
             m_hat = m[k] / (1 - beta1 ** (it + 1))
             v_hat = v[k] / (1 - beta2 ** (it + 1))
             params[k] = params[k] - learning_rate * scales[k] * m_hat / (np.sqrt(v_hat) + eps)
-            if bounds and k in bounds:
-                params[k] = np.clip(params[k], *bounds[k])
+            bound = (bounds or {}).get(k) or (bounds or {}).get(k.split(".", 1)[-1])  # "towel.k_bend" -> k_bend
+            if bound:
+                params[k] = np.clip(params[k], *bound)
     final, _ = evaluate(params, False)
     result.losses.append(final)
     if final < result.best_loss:
@@ -68,4 +69,11 @@ def adam(
     return result
 
 
-PARAM_BOUNDS = {"nu": (0.0, 0.49), "E": (1e-6, np.inf)}
+PARAM_BOUNDS = {
+    "nu": (0.0, 0.49),
+    "E": (1e-6, np.inf),
+    "k_stretch": (1e-6, np.inf),
+    "k_bend": (0.0, np.inf),
+    "c_mass": (0.0, np.inf),
+    "density": (1e-9, np.inf),
+}

@@ -63,8 +63,15 @@ def semantic_problems(scene: Scene) -> list[str]:
             vec(f"{base}.region.min", ctl.region.min)
             vec(f"{base}.region.max", ctl.region.max)
     loss = scene.loss
-    if loss.body is not None and loss.body not in names:
-        problems.append(f"loss.body: no body named '{loss.body}'; bodies are {names}")
+    loss_bodies = names + [c.name for c in scene.cloth]
+    if loss.body is not None and loss.body not in loss_bodies:
+        problems.append(f"loss.body: no body or cloth named '{loss.body}'; there are {loss_bodies}")
+    if loss.type == "pose_target":
+        if loss.body is None:
+            problems.append("loss.body: pose_target needs the body or cloth whose pose is steered")
+        if loss.rotation is not None and (d != 3 or len(loss.rotation) != 3):
+            problems.append("loss.rotation: a rotation vector of 3 entries (3D scenes)")
+        vec("loss.pivot", loss.pivot)
     if loss.type == "com_target":
         if loss.body is None:
             problems.append("loss.body: com_target needs the body whose centre of mass is steered")

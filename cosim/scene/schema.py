@@ -162,12 +162,19 @@ class LossSpec(Strict):
     - weighted_positions: mean over particles of w_p . x_p with fixed seeded
       normal weights w_p: a generic probe of every particle's final position;
     - com_target: squared distance [m^2] of a body's centre of mass to ``target``;
-    - joint_target: squared distance of a DART joint's positions to ``target``.
+    - joint_target: squared distance of a DART joint's positions to ``target``;
+    - pose_target: mean squared distance [m^2] of a body's points (particles or cloth vertices)
+      to their start positions rotated by ``rotation`` about ``pivot`` and shifted by ``target``.
+
+    ``body`` names an MPM body or a cloth (its vertices are the points).
     """
 
-    type: Literal["weighted_positions", "com_target", "joint_target"] = "weighted_positions"
-    body: str | None = None  # restrict to one body (required for com_target)
-    target: Vec | None = None  # com_target: a point; joint_target: the joint's positions
+    type: Literal["weighted_positions", "com_target", "joint_target", "pose_target"] = "weighted_positions"
+    body: str | None = None  # restrict to one body (required for com_target, pose_target)
+    target: Vec | None = None  # com_target: a point; joint_target: the joint's positions; pose_target: shift
+    rotation: Vec | None = None  # pose_target: rotation vector [rad] (3D)
+    pivot: Vec | None = None  # pose_target: the rotation's centre [m]
+    rest_positions: Any = Field(default=None, exclude=True)  # set by the loss for MPM bodies, not in files
     skeleton: str | None = None  # joint_target: the articulated skeleton
     joint: str | None = None  # joint_target: its joint
 
@@ -360,8 +367,14 @@ class ContactSpec(Strict):
     tracing: bool = True  # cloth: penetration tracing (off: a particle's legal side is where it is now)
 
 
+# Differentiable parameters by name: one name selects it in every engine that has it (``action``:
+# DART's and every cloth's; ``x0``: the particles' and each cloth's vertices). Cloth material:
+# k_stretch, k_bend, c_mass (damping), density.
+ParamName = Literal["x0", "v0", "impulse", "E", "nu", "action", "k_stretch", "k_bend", "c_mass", "density"]
+
+
 class GradientSpec(Strict):
-    params: list[Literal["x0", "v0", "impulse", "E", "nu", "action"]] = ["v0", "impulse", "E"]
+    params: list[ParamName] = ["v0", "impulse", "E"]
     tolerance: Positive = 1e-4  # relative error allowed by `cosim gradcheck`
     directions: Annotated[int, Field(ge=1, le=64)] = 3
 
@@ -369,7 +382,7 @@ class GradientSpec(Strict):
 class OptimizeSpec(Strict):
     """`cosim optimize`: Adam on the loss's adjoint gradient."""
 
-    params: list[Literal["x0", "v0", "impulse", "E", "nu", "action"]] = ["impulse"]
+    params: list[ParamName] = ["impulse"]
     iterations: Annotated[int, Field(ge=1, le=100000)] = 30
     learning_rate: Positive = 0.05  # a fraction of each parameter's natural scale per step
 
