@@ -21,9 +21,7 @@ class Loss:
     unset) or a cloth's vertices (``state[cloth]["x"]``, when ``body`` names a cloth).
     """
 
-    def __init__(
-        self, spec, dim: int, seed: int, slices: dict[str, slice], mass: np.ndarray, rigid=None, cloths=None
-    ):
+    def __init__(self, spec, dim: int, seed: int, slices: dict[str, slice], mass: np.ndarray, rigid=None, cloths=None):
         self.kind = spec.type
         if self.kind == "joint_target":
             self.dofs = rigid.dof_indices(spec.skeleton, spec.joint)
