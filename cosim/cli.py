@@ -14,7 +14,7 @@ from pathlib import Path
 from cosim.bench import BENCHMARKS
 from cosim.errors import CosimError
 
-DEFAULT_SCENE = "elastic_bounce_2d.yaml"
+DEFAULT_SCENE = "cloth_catch.yaml"
 
 
 def resolve_scene(arg: str | None) -> Path:

@@ -57,7 +57,7 @@ def test_default_scene_preview_shows_the_body_moving(tmp_path):
 
     res = run_cli("run", "--steps", "20", "--out", str(tmp_path), "--quiet")
     assert res.returncode == 0, res.stderr
-    assert "elastic_bounce_2d" in res.stdout
+    assert "cloth_catch" in res.stdout
     frames = imageio.mimread(tmp_path / "preview.gif")
     first, last = (np.asarray(f)[..., :3].astype(int) for f in (frames[0], frames[-1]))
     blue = lambda img: np.abs(img - [31, 119, 180]).sum(axis=-1) < 40  # body 0's colour
@@ -85,9 +85,9 @@ def cli_in_fresh_process(args: list[str], forbidden: str) -> subprocess.Complete
 
 
 def test_run_without_rigid_bodies_imports_neither_dartpy_nor_cloth(tmp_path):
-    """The default scene (2D) also leaves the 3D renderer unloaded: VTK is imported only for 3D previews."""
+    """A 2D scene without rigid bodies also leaves the 3D renderer unloaded: VTK is imported only for 3D previews."""
     cli_in_fresh_process(
-        ["run", "--steps", "2", "--out", str(tmp_path), "--quiet"],
+        ["run", "elastic_bounce_2d", "--steps", "2", "--out", str(tmp_path), "--quiet"],
         "m.startswith('dartpy') or 'cloth' in m or m.split('.')[0] in ('pyvista', 'vtk', 'vtkmodules')",
     )
 

@@ -42,3 +42,97 @@ def test_towel_squash_squashes_with_tracing_and_passes_through_without():
     centre = towel[len(towel) // 2]
     assert centre[1] < 0.5 * (x0[:, 1].min() + x0[:, 1].max())
     assert _above_sheet(x, towel) > 0.5 * len(x)
+
+
+def _rollout(name: str, overrides: dict | None = None, on_step=None):
+    """Build ``scenes/NAME.yaml`` in float64 (plus ``overrides``), run it; returns the system."""
+    scene = load_scene(SCENES / f"{name}.yaml", {"precision": "float64", **(overrides or {})})
+    sim = build_system(scene)
+    sim.rollout(on_step=on_step)
+    return sim
+
+
+def _inside(sim) -> int:
+    """Particles the penetration tracer marks as having crossed the (one) cloth."""
+    return int(np.count_nonzero(sim.couplers[0].state()["inside"]))
+
+
+@pytest.mark.slow
+def test_make_taco_folds_over_the_filling():
+    """The two rim groups, 0.58 m apart at rest, end less than half as far apart (the fold closes by
+    80 degrees per side in 0.32 s); no filling particle is traced inside the tortilla; the filling is
+    lifted into the fold (centre of mass up by more than two cells) and lies between the two halves:
+    every particle within the x-span of the folded tortilla and above its pinned line."""
+    sim = _rollout("make_taco", {"steps": 160})
+    cloth = sim.engines["tortilla"]
+    rest, x_cloth = cloth.mesh.vertices, cloth.state()["x"]
+    right, left = cloth.controls
+    gap0 = np.linalg.norm(rest[right].mean(0) - rest[left].mean(0))
+    gap = np.linalg.norm(x_cloth[right].mean(0) - x_cloth[left].mean(0))
+    assert gap < 0.5 * gap0, (gap, gap0)
+    assert _inside(sim) == 0
+    x0, x = sim.initial["mpm"]["x"], sim.mpm.state()["x"]
+    assert x[:, 1].mean() > x0[:, 1].mean() + 2 * sim.dx
+    assert x[:, 1].min() > 0.2  # above the pinned centre line
+    assert x[:, 0].min() > x_cloth[:, 0].min() and x[:, 0].max() < x_cloth[:, 0].max()
+
+
+@pytest.mark.slow
+def test_push_towel_swings_the_towel_towards_its_target():
+    """The pushed towel's pose loss (mean squared distance to the towel rotated -36 degrees about its
+    pinned edge) ends below a fifth of the loss when the pusher only hovers (gravity compensated, at
+    rest); its bottom edge swings towards +z by more than 20 degrees about the pinned edge, the towel's
+    momentum points in the push direction, and the pusher lost z momentum to it (its z momentum is
+    below the initial one plus the control impulses). No particle is traced inside the towel."""
+    from cosim.losses import Loss
+
+    scene = load_scene(SCENES / "push_towel.yaml")
+    pusher = scene.mpm.bodies[0].model_dump(exclude_none=True)
+    hover = {
+        "mpm": {**scene.mpm.model_dump(exclude_none=True), "bodies": [{**pusher, "velocity": [0.0, 0.0, 0.0]}]},
+        "controls": [{"body": "pusher", "impulse": [0.0, 3.83e-5, 0.0]}],
+    }
+    losses = {}
+    for label, overrides in (("push", {}), ("hover", hover)):
+        sim = _rollout("push_towel", overrides)
+        losses[label] = Loss.for_system(sim)(sim.state())[0]
+        if label == "push":
+            towel0, towel = sim.initial["towel"]["x"], sim.engines["towel"].state()
+            bottom = towel0[:, 1] < towel0[:, 1].min() + 1e-9
+            d = towel["x"][bottom].mean(0) - np.array([0.5, 0.7, 0.45])
+            assert np.degrees(np.arctan2(d[2], -d[1])) > 20.0
+            masses = sim.engines["towel"].masses()
+            assert (masses * towel["v"][:, 2]).sum() > 0
+            m, v = sim.mpm.mass, sim.mpm.state()["v"]
+            p0 = (m * sim.initial["mpm"]["v"][:, 2]).sum() + len(m) * 1.0e-5 * sim.steps
+            assert (m * v[:, 2]).sum() < p0
+            assert _inside(sim) == 0
+    assert losses["push"] < 0.2 * losses["hover"], losses
+
+
+@pytest.mark.slow
+def test_cloth_catch_box_jelly_and_towel_interact():
+    """The default scene: the DART box's fall (it starts at -0.5 m/s and gravity speeds it up) is
+    stopped by the jelly: its downward speed at the end is below half its largest; the towel's centre
+    sags by more than 4 cm under the jelly and the box; the jelly ends above the sheet everywhere
+    (no particle below the towel's height field, none traced inside) and the box above the jelly."""
+    speeds = []
+    sim = None
+
+    def on_step(n):
+        if sim is not None:
+            speeds.append(-sim.engines["dart"].state()["qd"][4])
+
+    sim = build_system(load_scene(SCENES / "cloth_catch.yaml", {"precision": "float64"}))
+    sim.rollout(on_step=on_step)
+    assert max(speeds) > 0.5
+    assert speeds[-1] < 0.5 * max(speeds), (speeds[-1], max(speeds))
+    towel0, towel = sim.initial["towel"]["x"], sim.engines["towel"].state()["x"]
+    centre = len(towel) // 2
+    assert towel[centre, 1] < towel0[centre, 1] - 0.04
+    x = sim.mpm.state()["x"]
+    height = LinearNDInterpolator(towel[:, [0, 2]], towel[:, 1])(x[:, [0, 2]])
+    assert int(np.sum(x[:, 1] < np.nan_to_num(height, nan=-np.inf))) == 0
+    assert _inside(sim) == 0
+    box_y = sim.engines["dart"].state()["q"][4]
+    assert box_y > x[:, 1].max()
