@@ -233,6 +233,11 @@ def _particles(scene):
 
 # ------------------------------------------------------------------------------------------ taco
 
+# The tortilla (SoftMAC's taco material, k_stretch 2500 N/m, k_bend 0.75 N m in our units) is dropped
+# 1 cm onto the filling and settles on it, its two rims held by controls at zero velocity (the
+# action sequence is still a differentiable input). Rims pulled down at 0.1-0.3 m/s made the sheet
+# flap (vertex speeds up to 5 m/s) until the tracing travel bound stopped the run after 50-150
+# steps, with a lighter filling sooner: not diagnosed yet, so the case measures cost, not the task.
 TACO = {
     "name": "taco_bench",
     "dim": 3,
@@ -252,13 +257,13 @@ TACO = {
     "cloth": [
         {
             "name": "tortilla",
-            "mesh": {"type": "disc", "center": [0.5, 0.21, 0.5], "radius": 0.25, "rings": 8},
+            "mesh": {"type": "disc", "center": [0.5, 0.19, 0.5], "radius": 0.25, "rings": 8},
             "material": {"stretch": 2500, "bend": 0.75, "density": 0.2},
             "controls": [
                 {"name": "left", "vertices": {"region": {"min": [0.2, 0.15, 0.3], "max": [0.3, 0.3, 0.7]}}},
                 {"name": "right", "vertices": {"region": {"min": [0.7, 0.15, 0.3], "max": [0.8, 0.3, 0.7]}}},
             ],
-            "actions": {"hold": 200, "initial": [0.0, -0.3, 0.0, 0.0, -0.3, 0.0]},
+            "actions": {"hold": 200, "initial": [0.0] * 6},  # held: see TACO's comment
         }
     ],
     "contact": {"model": "forecast", "friction": 0.2},
@@ -352,6 +357,11 @@ def _lines(result: dict) -> list[str]:
     return lines
 
 
+def _write_partial(out_dir: Path, result: dict) -> None:
+    """The parts measured so far (a long run keeps them if a later part fails)."""
+    (out_dir / "cloth.json").write_text(json.dumps(result, indent=1) + "\n")
+
+
 def run_cloth_bench(out_dir: Path, quick: bool = False, repeat: int = 3) -> int:
     """Every part; writes OUT/cloth.json and OUT/cloth.md and prints the tables."""
     import datetime
@@ -366,11 +376,14 @@ def run_cloth_bench(out_dir: Path, quick: bool = False, repeat: int = 3) -> int:
     sizes = [400, 2000] if quick else [400, 2000, 10000]
     print(f"  cloth step: {sizes} vertices", flush=True)
     result["step"] = run_cloth_step_bench(sizes, steps=4 if quick else 10)
+    _write_partial(out_dir, result)
     print("  nearest-face query", flush=True)
     result["query"] = [measure_query(f, repeat=max(repeat, 5)) for f in QUERY_FACES]
+    _write_partial(out_dir, result)
     print("  towel_squash: coupled, MPM alone, cloth alone", flush=True)
     steps, grad_steps = (10, 0) if quick else (60, 40)
     result["coupled"] = measure_coupled(steps, grad_steps, repeat)
+    _write_partial(out_dir, result)
     if not quick:
         print("  taco-sized case", flush=True)
         result["taco"] = measure_taco(200, 1)
