@@ -284,9 +284,11 @@ def make_parser() -> argparse.ArgumentParser:
 
     b = sub.add_parser("bench", help="benchmarks: throughput, backward/forward ratio, memory")
     b.add_argument("what", choices=BENCHMARKS)
-    b.add_argument("--out", default="out/bench", help="folder for the CSV")
+    b.add_argument("--out", default="out/bench", help="folder for the results (CSV; cloth: JSON)")
     b.add_argument("--quick", action="store_true", help="fewer substeps (a smoke run)")
-    b.add_argument("--repeat", type=positive_int, default=3, help="contact, coupling: repetitions; times are medians")
+    b.add_argument(
+        "--repeat", type=positive_int, default=3, help="contact, coupling, cloth: repetitions; times are medians"
+    )
     b.set_defaults(func=cmd_bench)
 
     rd = sub.add_parser("render", help="render a saved trajectory.npz to a GIF/MP4")

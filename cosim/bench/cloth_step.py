@@ -4,7 +4,7 @@ A square 1 m sheet, horizontal (normal y), pinned along one edge, falling under 
 k_stretch 1000 N/m, k_bend 0.015 N m, density 0.2 kg/m^2. Per size: the median forward and adjoint
 time per step (JAX compilation excluded by warm-up steps), Newton iterations, and a cProfile split
 of the forward steps (element Hessians in JAX, PSD projection, sparse assembly, LU factorisation,
-energies and gradients for the line search). Not wired to the CLI yet.
+energies and gradients for the line search). Part of `cosim bench cloth` (``cosim.bench.cloth``).
 """
 
 from __future__ import annotations

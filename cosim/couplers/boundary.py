@@ -21,7 +21,7 @@ and on the host, the MPM engine's side of the contract (``cosim.engines.contract
 ``reactions(K)``, ``zero_grad()``, ``seed_reaction_grads(grads)`` and
 ``state_grads(K)``. The contact models (``cosim.couplers.contact``) are written once
 against this interface and take any number of sources; rigid SDF bodies are one
-source (``RigidBoundaries``), the cloth's traced distance will be another.
+source (``RigidBoundaries``), the cloth's traced distance (``ClothBoundary``) is another.
 """
 
 import numpy as np

@@ -27,7 +27,7 @@ The soft-body engine (MPM, ``cosim.engines.mpm.MPMEngine``, name ``"mpm"``):
     vjp       grad_outputs {state, reactions} -> {state, impulse, boundaries, E, nu}:
               the reaction adjoints are an argument, the boundary adjoints a result.
 
-A manipulator engine (DART ``RigidEngine`` "dart", ``KinematicEngine`` "kinematic", later cloth):
+A manipulator engine (DART ``RigidEngine`` "dart", ``KinematicEngine`` "kinematic", ``ClothEngine`` by its name):
     inputs    action (A,) (layout per engine; None: zeros), forces (engine-specific
               external forces, e.g. DART: (bodies, 6) wrenches [torque; force] in the
               world frame, torque about the body origin [N m; N]).
