@@ -1,4 +1,4 @@
-"""cosim: differentiable co-simulation of MPM soft bodies with rigid bodies (and, next, cloth).
+"""cosim: differentiable co-simulation of MPM soft bodies with rigid bodies and cloth.
 
 The main entry points, imported lazily (``import cosim`` loads neither Taichi nor DART):
 
