@@ -80,34 +80,27 @@ def test_make_taco_folds_over_the_filling():
 @pytest.mark.slow
 def test_push_towel_swings_the_towel_towards_its_target():
     """The pushed towel's pose loss (mean squared distance to the towel rotated -36 degrees about its
-    pinned edge) ends below a fifth of the loss when the pusher only hovers (gravity compensated, at
-    rest); its bottom edge swings towards +z by more than 20 degrees about the pinned edge, the towel's
-    momentum points in the push direction, and the pusher lost z momentum to it (its z momentum is
-    below the initial one plus the control impulses). No particle is traced inside the towel."""
+    pinned edge) ends below a fifth of its value for the towel left hanging as it starts (what doing
+    nothing gives: the pusher does not reach it otherwise); its bottom edge swings towards +z by more
+    than 20 degrees about the pinned edge, the towel's momentum points in the push direction, and the
+    pusher lost z momentum to it (its z momentum is below the initial one plus the control impulses).
+    No particle is traced inside the towel."""
     from cosim.losses import Loss
 
-    scene = load_scene(SCENES / "push_towel.yaml")
-    pusher = scene.mpm.bodies[0].model_dump(exclude_none=True)
-    hover = {
-        "mpm": {**scene.mpm.model_dump(exclude_none=True), "bodies": [{**pusher, "velocity": [0.0, 0.0, 0.0]}]},
-        "controls": [{"body": "pusher", "impulse": [0.0, 3.83e-5, 0.0]}],
-    }
-    losses = {}
-    for label, overrides in (("push", {}), ("hover", hover)):
-        sim = _rollout("push_towel", overrides)
-        losses[label] = Loss.for_system(sim)(sim.state())[0]
-        if label == "push":
-            towel0, towel = sim.initial["towel"]["x"], sim.engines["towel"].state()
-            bottom = towel0[:, 1] < towel0[:, 1].min() + 1e-9
-            d = towel["x"][bottom].mean(0) - np.array([0.5, 0.7, 0.45])
-            assert np.degrees(np.arctan2(d[2], -d[1])) > 20.0
-            masses = sim.engines["towel"].masses()
-            assert (masses * towel["v"][:, 2]).sum() > 0
-            m, v = sim.mpm.mass, sim.mpm.state()["v"]
-            p0 = (m * sim.initial["mpm"]["v"][:, 2]).sum() + len(m) * 1.0e-5 * sim.steps
-            assert (m * v[:, 2]).sum() < p0
-            assert _inside(sim) == 0
-    assert losses["push"] < 0.2 * losses["hover"], losses
+    sim = _rollout("push_towel")
+    loss = Loss.for_system(sim)
+    pushed, hanging = loss(sim.state())[0], loss(sim.initial)[0]
+    towel0, towel = sim.initial["towel"]["x"], sim.engines["towel"].state()
+    bottom = towel0[:, 1] < towel0[:, 1].min() + 1e-9
+    d = towel["x"][bottom].mean(0) - np.array([0.5, 0.7, 0.45])
+    assert np.degrees(np.arctan2(d[2], -d[1])) > 20.0
+    masses = sim.engines["towel"].masses()
+    assert (masses * towel["v"][:, 2]).sum() > 0
+    m, v = sim.mpm.mass, sim.mpm.state()["v"]
+    p0 = (m * sim.initial["mpm"]["v"][:, 2]).sum() + len(m) * 1.0e-5 * sim.steps
+    assert (m * v[:, 2]).sum() < p0
+    assert _inside(sim) == 0
+    assert pushed < 0.2 * hanging, (pushed, hanging)
 
 
 @pytest.mark.slow
