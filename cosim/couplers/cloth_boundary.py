@@ -185,7 +185,7 @@ class ClothBoundary:
 
     def reactions(self, K: int) -> dict:
         """{"impulse": (V, 3) [N s] over the macro step, "tracking": the state after its last substep}."""
-        self.tracer.trace(self.engine._slot, K, first=False, record=False)  # the last substep's motion
+        self.tracer.trace(self.engine.slot, K, first=False, record=False)  # the last substep's motion
         return {"impulse": self.impulse.to_numpy().astype(np.float64), "tracking": self.tracer.state()}
 
     def zero_grad(self) -> None:

@@ -57,6 +57,11 @@ class MPMEngine(MPMKernels):
         self._known_state = None  # the state the last step returned, while it is still the current one
         super().__init__(config, bodies)
 
+    @property
+    def slot(self) -> int:
+        """The particle slot holding the current state (``x[slot, p]``): what a boundary source traces."""
+        return self._slot
+
     # ------------------------------------------------------------ hooks and sources
     def attach_grid_hook(self, hook):
         """Let a contact model rewrite grid velocities after the grid update; returns its upstream.

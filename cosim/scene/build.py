@@ -135,7 +135,7 @@ def build_system(scene: Scene, requires_grad: bool = False, steps: int | None = 
     controls = build_controls(scene, mpm.body_slices(), mpm.state()["x"])
     parts = build_manipulators(scene, mpm, stepping)
     rigid = None
-    if parts.engines:
+    if any(e not in parts.cloths for e in parts.engines):  # rigid engines (a cloth alone needs no rigid view)
         from cosim.couplers.rigid_view import RigidBodies
 
         rigid = RigidBodies(parts.names, parts.shapes, parts.grids, parts.kinematic, parts.dart_coupler, scene.dim)
