@@ -13,8 +13,9 @@ point x + dt v asks for its particle) or -1 for a grid node at x. Rigid bodies i
 a cloth needs it, since which side of a sheet is legal is a per-particle state that
 penetration tracing carries across steps. A source may define ``before_substep(src, s)``
 (host): the MPM engine calls it before the particle hooks of substep s (particles in
-slot ``src``), outside any differentiated kernel, to run discrete per-particle work such
-as nearest-face queries and tracing.
+slot ``src``), to run discrete per-particle work such as nearest-face queries and
+tracing; if it also computes something differentiable there, it defines
+``before_substep_grad(src, s)``, which the engine calls at the end of substep s's adjoint.
 
 and on the host, the MPM engine's side of the contract (``cosim.engines.contract``):
 ``write(states)`` (BoundaryStates of substeps 0..K-1; clears their reactions),

@@ -31,16 +31,24 @@ has not crossed: it is legal where it is.
 The per-substep result (face, side, inside) is kept in (slots, N) fields that the
 differentiated contact kernels of that substep read (and their adjoints read the
 same); these kernels are never differentiated.
+
+Blend candidates: with the face, each traced particle keeps up to ``CANDIDATES`` faces of
+its neighbourhood whose distance is within ``cutoff`` of the nearest (the face first,
+then the others nearest first; a face whose closest point is a vertex already listed as
+a closest point is left out: it adds nothing), with each one's winding relative to the
+face. ``ClothBoundary`` blends their closest points so that a particle's contact frame
+does not jump when its nearest face changes (see there).
 """
 
 import numpy as np
 import taichi as ti
 
-from cosim.couplers.cloth_mesh_query import CORNER, EDGE, MeshQuery
+from cosim.couplers.cloth_mesh_query import CORNER, EDGE, MeshQuery, closest_point_on_triangle
 from cosim.couplers.cloth_topology import ClothTopology
 from cosim.errors import SimulationError
 
 TRACKING_KEYS = ("face", "side", "inside")
+CANDIDATES = 4  # faces blended per particle (ClothBoundary)
 
 
 class ClothTracingError(SimulationError):
@@ -80,6 +88,10 @@ class PenetrationTracer:
         self.face_s = ti.field(ti.i32, shape=(slots, N))
         self.side_s = ti.field(ti.i32, shape=(slots, N))
         self.inside_s = ti.field(ti.i32, shape=(slots, N))
+        self.cutoff = 0.0  # [m] blend candidates lie within it of the nearest distance (set by the owner)
+        self.candidate_s = ti.field(ti.i32, shape=(slots, N, CANDIDATES))  # face ids, -1 unused
+        self.candidate_flag_s = ti.field(ti.i32, shape=(slots, N, CANDIDATES))  # winding relative to face_s
+        self.overflow = ti.field(ti.i32, shape=())  # particles with more candidates than kept (diagnostics)
         self.box = ti.Vector.field(3, float, shape=2)  # the mesh's bounding box grown by the band
         self.errors = ti.field(ti.i32, shape=4)  # lost count, first lost particle, fast count, first fast particle
         self.real = query.real
@@ -219,7 +231,7 @@ class PenetrationTracer:
                     ti.atomic_add(self.errors[2], 1)
                     ti.atomic_min(self.errors[3], p)
             self.last_x[p] = x
-            f, _d2, bary, region = self.query.nearest(x)
+            f, d2, bary, region = self.query.nearest(x)
             ref, side, inside = self.face[p], 0, 0
             face = f
             if f >= 0:
@@ -244,6 +256,56 @@ class PenetrationTracer:
             self.face[p], self.side[p], self.inside[p] = face, side, inside
             if record:
                 self.face_s[slot, p], self.side_s[slot, p], self.inside_s[slot, p] = face, side, inside
+                self._candidates(slot, p, x, face, d2)
+
+    @ti.func
+    def _candidates(self, slot, p, x, face, d2_min):
+        """Record the blend candidates of particle p at x (see the module docstring)."""
+        ids = ti.Vector([-1] * CANDIDATES)
+        dist = ti.Vector([0.0] * CANDIDATES)
+        flags = ti.Vector([0] * CANDIDATES)
+        corner = ti.Vector([-1] * CANDIDATES)  # the vertex that is the closest point, or -1
+        if face >= 0:
+            limit = ti.sqrt(d2_min) + self.cutoff
+            count = 0
+            key = self.query.cell_key(x)
+            for j in range(self.query.start[key], self.query.start[key + 1] + 1):
+                g = face  # the face itself first, then the hash cell's entries
+                if j > self.query.start[key]:
+                    g = self.query.entries[j - 1]
+                if j == self.query.start[key] or g != face:
+                    a, b, c = self.query.corners(g)
+                    point, _w, region = closest_point_on_triangle(x, a, b, c)
+                    d = ti.sqrt((x - point).norm_sqr())
+                    vertex = -1
+                    if region >= CORNER and region < EDGE:
+                        vertex = self.query.faces[g][region - CORNER]
+                    flag = 1
+                    if g != face:
+                        flag = self.relative_flag(face, g)
+                    listed = 0
+                    if vertex >= 0:
+                        for k in ti.static(range(CANDIDATES)):
+                            if corner[k] == vertex:
+                                listed = 1
+                    if d <= limit and flag != 0 and not listed:
+                        slot_k = -1  # where it goes: the next free place, or the farthest if nearer
+                        if count < CANDIDATES:
+                            slot_k = count
+                            count += 1
+                        else:
+                            ti.atomic_add(self.overflow[None], 1)
+                            far, far_d = -1, d
+                            for k in ti.static(range(1, CANDIDATES)):
+                                if dist[k] > far_d:
+                                    far, far_d = k, dist[k]
+                            slot_k = far
+                        for k in ti.static(range(CANDIDATES)):
+                            if k == slot_k:
+                                ids[k], dist[k], flags[k], corner[k] = g, d, flag, vertex
+        for k in ti.static(range(CANDIDATES)):
+            self.candidate_s[slot, p, k] = ids[k]
+            self.candidate_flag_s[slot, p, k] = flags[k]
 
 
 def _int_field(shape: tuple, values: np.ndarray):

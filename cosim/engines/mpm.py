@@ -97,6 +97,8 @@ class MPMEngine(MPMKernels):
         self.boundaries[name] = source
         if hasattr(source, "before_substep"):
             self.substep_preparers.append(source.before_substep)
+        if hasattr(source, "before_substep_grad"):
+            self.substep_preparer_grads.append(source.before_substep_grad)
 
     def _check_unspecialised(self, what: str) -> None:
         if self._token > 0:

@@ -133,6 +133,7 @@ class MPMKernels:
         self.grid_hooks: list = []  # contact models rewriting grid velocities, in order
         self.particle_hooks: list = []  # contact models adding momentum in P2G
         self.substep_preparers: list = []  # boundary sources' before_substep(src, s), run on the host
+        self.substep_preparer_grads: list = []  # their before_substep_grad(src, s), if differentiable
         self._grid_out = self  # what G2P gathers velocities from (``velocity(g, I)``): the last grid hook
         self._slot = 0
         self._token = 0
@@ -389,3 +390,5 @@ class MPMKernels:
             self._stress.grad(self.materials[b], b, lo, hi, s, s, dt)
         for hook in reversed(self.particle_hooks):
             hook.apply_grad(s, s, s, dt)
+        for prepare_grad in reversed(self.substep_preparer_grads):
+            prepare_grad(s, s)
