@@ -89,7 +89,7 @@ def cmd_gradcheck(args) -> int:
     from cosim.scene.build import build_system
 
     scene = _load(args, precision="float64")
-    steps = args.steps or min(scene.steps, 5)
+    steps = args.steps or scene.gradient.steps or min(scene.steps, 5)
     sim = build_system(scene, requires_grad=True, steps=steps)
     obj = Objective(sim)
     params = obj.initial_params()
@@ -275,7 +275,9 @@ def make_parser() -> argparse.ArgumentParser:
 
     g = sub.add_parser("gradcheck", help="adjoint vs central finite differences (float64)")
     g.add_argument("scene")
-    g.add_argument("--steps", type=positive_int, help="macro steps (default: min(scene steps, 5))")
+    g.add_argument(
+        "--steps", type=positive_int, help="macro steps (default: the scene's gradient.steps, else min(steps, 5))"
+    )
     g.add_argument("--directions", type=positive_int, help="random directions per parameter")
     g.add_argument("--tolerance", type=positive_float, help="largest relative error accepted")
     g.set_defaults(func=cmd_gradcheck)

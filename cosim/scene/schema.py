@@ -377,6 +377,9 @@ class GradientSpec(Strict):
     params: list[ParamName] = ["v0", "impulse", "E"]
     tolerance: Positive = 1e-4  # relative error allowed by `cosim gradcheck`
     directions: Annotated[int, Field(ge=1, le=64)] = 3
+    # macro steps of the check (default: min(steps, 5)); a scene whose contact starts late sets it so
+    # that the check crosses contact
+    steps: Annotated[int, Field(ge=1)] | None = None
 
 
 class OptimizeSpec(Strict):
