@@ -101,12 +101,27 @@ class Objective:
         return self.system.state()
 
     def evaluate(self, params: dict[str, np.ndarray], grad: bool = False):
-        """Loss value, and with ``grad`` its gradient per parameter (same shapes)."""
-        final = self.rollout(params, record=grad)
+        """Loss value, and with ``grad`` its gradient per parameter (same shapes). Running loss
+        terms are evaluated at every macro step's state, their gradients fed into the tape's
+        backward pass at their step."""
+        running: list[dict | None] = []
+        on_step = None
+        if getattr(self.loss, "has_running", False):
+            self.loss.reset_running()
+            total = [0.0]
+
+            def on_step(n: int) -> None:
+                value, g = self.loss.running(self.system.state())
+                total[0] += value
+                running.append(g if grad else None)
+
+        final = self.rollout(params, record=grad, on_step=on_step)
         value, dstate = self.loss(final)
+        if running:
+            value += total[0]
         if not grad:
             return value, None
-        g = self.tape.backward(self.system.vjp, dstate)
+        g = self.tape.backward(self.system.vjp, dstate, running or None)
         grads = {}
         for name, param_value in params.items():
             p = self.parameters[name]

@@ -46,20 +46,30 @@ class Tape:
         """Host memory held by the checkpoints [bytes]."""
         return sum(r.nbytes for r in self.records)
 
-    def backward(self, step_vjp: Callable, grad_final: dict[str, dict[str, np.ndarray]]) -> Gradients:
-        """Chain rule over the recorded steps: dL/ds^n = dL/ds^{n+1} ds^{n+1}/ds^n.
+    def backward(
+        self,
+        step_vjp: Callable,
+        grad_final: dict[str, dict[str, np.ndarray]],
+        running: list[dict | None] | None = None,
+    ) -> Gradients:
+        """Chain rule over the recorded steps: dL/ds^n = dL/ds^{n+1} ds^{n+1}/ds^n + dl_n/ds^n.
 
         ``step_vjp(record, dL/dstate_after)`` differentiates one step (``CoupledSystem.vjp``) and
         returns "state" (per engine), "impulse", "action" (per engine) and "material".
+        ``running[n]`` (n = 0..S) is the gradient of the loss terms read at state n (running
+        terms; None where there are none): it joins the adjoint as the pass reaches state n.
         """
-        grad_state = grad_final
+        running = running or [None] * (len(self.records) + 1)
+        if len(running) != len(self.records) + 1:
+            raise ValueError(f"running gradients: {len(running)} states for {len(self.records)} steps")
+        grad_state = _plus(grad_final, running[-1])
         n_steps = len(self.records)
         impulses: list[np.ndarray | None] = [None] * n_steps
         actions: dict[str, list] = {}
         material: dict[str, dict[str, np.ndarray]] = {}
         for n in reversed(range(n_steps)):
             out = step_vjp(self.records[n], grad_state)
-            grad_state = out["state"]
+            grad_state = _plus(out["state"], running[n])
             impulses[n] = out.get("impulse")
             for name, g in out["action"].items():
                 actions.setdefault(name, [None] * n_steps)[n] = g
@@ -68,3 +78,14 @@ class Tape:
                 for key, g in grads.items():
                     totals[key] = totals.get(key, 0.0) + g
         return Gradients(state0=grad_state, impulse=impulses, action=actions, material=material)
+
+
+def _plus(grad: dict[str, dict[str, np.ndarray]], extra: dict | None) -> dict[str, dict[str, np.ndarray]]:
+    """grad + extra per engine and key (extra may be None); new arrays, the inputs untouched."""
+    if extra is None:
+        return grad
+    out = {name: dict(g) for name, g in grad.items()}
+    for name, g in extra.items():
+        for key, value in g.items():
+            out.setdefault(name, {})[key] = out.get(name, {}).get(key, 0.0) + value
+    return out

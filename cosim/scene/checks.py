@@ -22,8 +22,7 @@ def semantic_problems(scene: Scene) -> list[str]:
     problems: list[str] = []
 
     def vec(path: str, value: list | None, n: int = d) -> None:
-        if value is not None and len(value) != n:
-            problems.append(f"{path}: must have {n} entries (dim is {d}), got {len(value)}")
+        problems.extend(length_problems(path, value, n, d))
 
     cells = scene.mpm.grid.cells
     if len(cells) not in (1, d):
@@ -62,28 +61,10 @@ def semantic_problems(scene: Scene) -> list[str]:
         if ctl.region is not None:
             vec(f"{base}.region.min", ctl.region.min)
             vec(f"{base}.region.max", ctl.region.max)
-    loss = scene.loss
     loss_bodies = names + [c.name for c in scene.cloth]
-    if loss.body is not None and loss.body not in loss_bodies:
-        problems.append(f"loss.body: no body or cloth named '{loss.body}'; there are {loss_bodies}")
-    if loss.type == "pose_target":
-        if loss.body is None:
-            problems.append("loss.body: pose_target needs the body or cloth whose pose is steered")
-        if loss.rotation is not None and (d != 3 or len(loss.rotation) != 3):
-            problems.append("loss.rotation: a rotation vector of 3 entries (3D scenes)")
-        vec("loss.pivot", loss.pivot)
-    if loss.type == "com_target":
-        if loss.body is None:
-            problems.append("loss.body: com_target needs the body whose centre of mass is steered")
-        if loss.target is None:
-            problems.append("loss.target: com_target needs a target point")
-    if loss.type == "joint_target":
-        if None in (loss.skeleton, loss.joint, loss.target):
-            problems.append("loss: joint_target needs skeleton, joint and target (the joint's positions)")
-        if scene.articulated is None:
-            problems.append("loss.type: joint_target needs an articulated: section")
-    else:
-        vec("loss.target", loss.target)
+    terms = scene.loss.all_terms()
+    for i, loss in enumerate(terms):
+        problems += loss_term_problems(loss, "loss" if not scene.loss.terms else f"loss.terms[{i}]", loss_bodies, scene)
     if scene.rigid is not None:
         problems += rigid_problems(scene)
     if scene.articulated is not None:
@@ -337,3 +318,45 @@ def cloth_problems(scene: Scene) -> list[str]:
                     f"{width} (a velocity [m/s] each)"
                 )
     return problems
+
+
+def loss_term_problems(loss, key: str, loss_bodies: list[str], scene) -> list[str]:
+    """What is wrong with one loss term (``LossTermSpec``) at ``key``."""
+    problems: list[str] = []
+    d = scene.dim
+
+    def vec(path: str, value) -> None:
+        problems.extend(length_problems(path, value, d, d))
+
+    if loss.body is not None and loss.body not in loss_bodies:
+        problems.append(f"{key}.body: no body or cloth named '{loss.body}'; there are {loss_bodies}")
+    needs_body = {
+        "pose_target": "whose pose is steered",
+        "com_target": "whose centre of mass is steered",
+        "chamfer": "whose points meet the target",
+    }
+    if loss.type in needs_body and loss.body is None:
+        problems.append(f"{key}.body: {loss.type} needs the body or cloth {needs_body[loss.type]}")
+    if loss.type == "pose_target":
+        if loss.rotation is not None and (d != 3 or len(loss.rotation) != 3):
+            problems.append(f"{key}.rotation: a rotation vector of 3 entries (3D scenes)")
+        vec(f"{key}.pivot", loss.pivot)
+    if loss.type == "com_target" and loss.target is None:
+        problems.append(f"{key}.target: com_target needs a target point")
+    if loss.type == "chamfer" and loss.points is None:
+        problems.append(f"{key}.points: chamfer needs its target point set (file, shape or rollout)")
+    if loss.type == "joint_target":
+        if None in (loss.skeleton, loss.joint, loss.target):
+            problems.append(f"{key}: joint_target needs skeleton, joint and target (the joint's positions)")
+        if scene.articulated is None:
+            problems.append(f"{key}.type: joint_target needs an articulated: section")
+    else:
+        vec(f"{key}.target", loss.target)
+    return problems
+
+
+def length_problems(path: str, value: list | None, n: int, d: int) -> list[str]:
+    """The problem of a vector ``value`` at ``path`` that should have n entries (none if it has)."""
+    if value is not None and len(value) != n:
+        return [f"{path}: must have {n} entries (dim is {d}), got {len(value)}"]
+    return []
