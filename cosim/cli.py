@@ -51,7 +51,7 @@ def cmd_run(args) -> int:
             raise InputError(f"--contact {args.contact}: the scene has no rigid bodies (no 'rigid:' section)")
         scene.contact.model = args.contact
     out = Path(args.out or f"out/{scene.name}")
-    m = run_scene(scene, out, steps=args.steps, progress=not args.quiet)
+    m = run_scene(scene, out, steps=args.steps, progress=not args.quiet, save_target=args.save_target)
     print(
         f"{scene.name}: {m['steps']} steps, {m['substeps_total']} substeps, {m['particles']} particles, "
         f"{m['wall_time_s']:.2f} s ({m['particle_substeps_per_s'] / 1e6:.2f} M particle-substeps/s), "
@@ -65,7 +65,8 @@ def cmd_run(args) -> int:
     if "particles_held" in m:
         held = ", ".join(f"{k}: {v}" for k, v in m["particles_held"].items())
         print(f"particles held by containers: {held}; elsewhere (spilled): {m['particles_elsewhere']}")
-    print(f"wrote {out}/trajectory.npz, {out}/metrics.json" + (f", {out}/{m['preview']}" if "preview" in m else ""))
+    extra = (f", {out}/{m['preview']}" if "preview" in m else "") + (f", {out}/target.npz" if args.save_target else "")
+    print(f"wrote {out}/trajectory.npz, {out}/metrics.json{extra}")
     return 0
 
 
@@ -267,6 +268,9 @@ def make_parser() -> argparse.ArgumentParser:
     r.add_argument("--steps", type=positive_int, help="macro steps (default: the scene's)")
     r.add_argument("--quiet", action="store_true", help="no progress bar")
     r.add_argument("--contact", choices=["grid", "particle", "forecast"], help="override the scene's contact model")
+    r.add_argument(
+        "--save-target", action="store_true", help="also write OUT/target.npz: final positions, a chamfer target"
+    )
     r.set_defaults(func=cmd_run)
 
     v = sub.add_parser("validate", help="check a scene file and report its size")

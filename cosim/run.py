@@ -137,12 +137,19 @@ def up_axis(gravity) -> np.ndarray:
 
 
 def run_scene(
-    scene: Scene, out_dir: Path, steps: int | None = None, progress: bool = True, preview: bool = True
+    scene: Scene,
+    out_dir: Path,
+    steps: int | None = None,
+    progress: bool = True,
+    preview: bool = True,
+    save_target: bool = False,
 ) -> dict:
     """Run ``scene`` for ``steps`` macro steps and write the outputs to ``out_dir``.
 
     Writes ``trajectory.npz``, ``metrics.json`` and ``preview.gif|mp4`` (see
-    docs/outputs.md) and returns the metrics.
+    docs/outputs.md) and returns the metrics; with ``save_target`` also ``target.npz``,
+    every body's and cloth's final positions ``x_<name>`` [m] (a chamfer loss's
+    ``points: {rollout: ...}``).
     """
     from tqdm import tqdm
 
@@ -168,6 +175,11 @@ def run_scene(
     sim.rollout(on_step=on_step)
     wall = time.perf_counter() - t0
     bar.close()
+    if save_target:
+        final = sim.state()
+        targets = {f"x_{name}": final["mpm"]["x"][sl] for name, sl in sim.slices.items()}
+        targets.update({f"x_{name}": final[name]["x"] for name, e in sim.engines.items() if hasattr(e, "mesh")})
+        np.savez_compressed(out_dir / "target.npz", **targets)
 
     metrics = {
         "scene": scene.name,
