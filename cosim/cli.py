@@ -118,12 +118,13 @@ def cmd_gradcheck(args) -> int:
 
 def cmd_optimize(args) -> int:
     import json
-    import time
 
     import numpy as np
+    from tqdm import tqdm
 
     from cosim.adjoint.objective import Objective
-    from cosim.adjoint.optimize import PARAM_BOUNDS, adam
+    from cosim.adjoint.optimize import PARAM_BOUNDS, minimise
+    from cosim.adjoint.report import plot_losses, write_history
     from cosim.errors import SceneError
     from cosim.run import Recorder
     from cosim.scene.build import build_system
@@ -132,43 +133,54 @@ def cmd_optimize(args) -> int:
     spec = scene.optimize
     sim = build_system(scene, requires_grad=True, steps=args.steps)
     obj = Objective(sim)
-    params = obj.initial_params()
     names = obj.select(spec.params)
     if not names:
         raise SceneError(f"optimize.params: none of {spec.params} exists in this scene (impulse needs controls)")
     iterations = args.iters or spec.iterations
     lr = args.lr or spec.learning_rate
+    method = args.method or spec.method
     out = Path(args.out or f"out/{scene.name}_optimize")
     out.mkdir(parents=True, exist_ok=True)
     print(
-        f"optimize {scene.name}: {', '.join(names)}; loss {scene.loss.type}; {sim.steps} steps; Adam lr {lr:g} x scale"
+        f"optimize {scene.name}: {', '.join(names)}; loss {' + '.join(obj.loss.values)}; {sim.steps} steps; "
+        f"{method} lr {lr:g} x scale" + ("; resuming" if args.resume else "")
     )
-    t0 = time.perf_counter()
-    result = adam(
+    bar = tqdm(total=iterations, desc="optimize", unit="it", disable=args.quiet)
+
+    def on_iteration(row: dict, history: list[dict]) -> None:
+        write_history(out, history)  # every iteration: an interrupted run keeps its log
+        bar.update(row["iteration"] + 1 - bar.n)
+        bar.set_postfix(loss=f"{row['loss']:.4e}")
+
+    result = minimise(
         obj.evaluate,
-        params,
+        obj.initial_params(),
         names,
         obj.natural_scales(),
         iterations,
         lr,
+        method,
         PARAM_BOUNDS,
-        callback=lambda it, loss: print(f"  iteration {it:4d}  loss {loss:.6e}", flush=True),
+        terms=lambda: dict(obj.loss.values),
+        on_iteration=on_iteration,
+        checkpoint=out / "checkpoint.npz",
+        resume=args.resume,
     )
-    wall = time.perf_counter() - t0
-    print(f"loss {result.losses[0]:.6e} -> {result.best_loss:.6e} in {iterations} iterations ({wall:.1f} s)")
+    bar.close()
+    wall = sum(r["seconds"] for r in result.history)
+    first, best = result.losses[0], result.best_loss
+    change = f" ({100 * (best - first) / abs(first):+.1f}%)" if first else ""
+    print(f"loss {first:.6e} -> {best:.6e}{change} in {iterations} iterations ({wall:.1f} s)")
     np.savez(out / "params.npz", **result.params)
-    (out / "optimization.json").write_text(
-        json.dumps(
-            {"params": names, "losses": result.losses, "best_loss": result.best_loss, "wall_time_s": wall}, indent=2
-        )
-    )
+    write_history(out, result.history)
+    plot_losses(out, result.losses, f"{scene.name}: {method}, {', '.join(names)}")
+    summary = {"params": names, "method": method, "losses": result.losses, "best_loss": best, "wall_time_s": wall}
+    (out / "optimization.json").write_text(json.dumps(summary, indent=2))
     recorder = Recorder(sim)
     obj.rollout(result.params, on_step=lambda n: recorder(n) if n == 0 or recorder.wants(n) else None)
     preview = recorder.write(out)
-    print(
-        f"wrote {out}/params.npz, {out}/optimization.json, {out}/trajectory.npz"
-        + (f", {out}/{preview}" if preview else "")
-    )
+    written = ["params.npz", "optimization.json", "optimization.csv", "loss.png", "checkpoint.npz", "trajectory.npz"]
+    print("wrote " + ", ".join(f"{out}/{name}" for name in written + ([preview] if preview else [])))
     return 0
 
 
@@ -292,6 +304,11 @@ def make_parser() -> argparse.ArgumentParser:
     o.add_argument("--lr", type=positive_float, help="learning rate, a fraction of each parameter's scale")
     o.add_argument("--steps", type=positive_int, help="macro steps of the rollout (default: the scene's)")
     o.add_argument("--out", help="output folder (default: out/SCENE_optimize)")
+    o.add_argument("--method", choices=["adam", "sgd"], help="optimiser (default: optimize.method, adam)")
+    o.add_argument(
+        "--resume", action="store_true", help="continue from OUT/checkpoint.npz (saved after every iteration)"
+    )
+    o.add_argument("--quiet", action="store_true", help="no progress bar")
     o.set_defaults(func=cmd_optimize)
 
     b = sub.add_parser("bench", help="benchmarks: throughput, backward/forward ratio, memory")

@@ -1,51 +1,104 @@
-"""Gradient-based optimisation of a rollout's inputs (Adam on the adjoint gradient)."""
+"""Gradient-based optimisation of a rollout's inputs on the adjoint gradient: Adam or SGD, resumable.
+
+Every parameter steps by ``learning_rate * scales[name]`` (Adam: times its normalised
+moment; SGD: times the raw gradient scaled by the parameter's size, g * scale^2), so one
+learning rate serves impulses [N s], actions [m/s] and moduli [Pa] alike. No gradient is
+scaled, clipped or dropped: bounds (e.g. nu < 0.5) project the parameters after a step.
+
+With a ``checkpoint`` path the parameters, the optimiser's moments and the history are
+saved after every iteration; ``resume`` continues from it, so an interrupted run ends
+where an uninterrupted one does.
+"""
 
 from __future__ import annotations
 
+import json
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
-from cosim.errors import SimulationError
+from cosim.errors import InputError, SimulationError
+
+METHODS = ("adam", "sgd")
 
 
 @dataclass
 class OptimizeResult:
     params: dict[str, np.ndarray]  # the best parameters seen
-    losses: list[float] = field(default_factory=list)  # loss at each iteration's parameters
+    losses: list[float] = field(default_factory=list)  # loss at each iteration's parameters, then the final one
     best_loss: float = float("inf")
+    history: list[dict] = field(default_factory=list)  # one row per iteration (``minimise``)
 
 
-def adam(
+class Adam:
+    """Adam (beta 0.9, 0.999): the step is ``lr * scale * m_hat / (sqrt(v_hat) + eps)``."""
+
+    beta1, beta2, eps = 0.9, 0.999, 1e-12
+
+    def __init__(self, names: list[str], params: dict[str, np.ndarray]) -> None:
+        self.state = {f"m:{k}": np.zeros_like(params[k]) for k in names}
+        self.state.update({f"v:{k}": np.zeros_like(params[k]) for k in names})
+
+    def step(self, it: int, name: str, grad: np.ndarray, lr: float, scale: float) -> np.ndarray:
+        m = self.state[f"m:{name}"] = self.beta1 * self.state[f"m:{name}"] + (1 - self.beta1) * grad
+        v = self.state[f"v:{name}"] = self.beta2 * self.state[f"v:{name}"] + (1 - self.beta2) * grad * grad
+        m_hat, v_hat = m / (1 - self.beta1 ** (it + 1)), v / (1 - self.beta2 ** (it + 1))
+        return -lr * scale * m_hat / (np.sqrt(v_hat) + self.eps)
+
+
+class SGD:
+    """Gradient descent with momentum 0.9 (the paper's optimiser for the Franka task): the velocity
+    u = 0.9 u + g scale^2, the step ``-lr * u``."""
+
+    momentum = 0.9
+
+    def __init__(self, names: list[str], params: dict[str, np.ndarray]) -> None:
+        self.state = {f"u:{k}": np.zeros_like(params[k]) for k in names}
+
+    def step(self, it: int, name: str, grad: np.ndarray, lr: float, scale: float) -> np.ndarray:
+        u = self.state[f"u:{name}"] = self.momentum * self.state[f"u:{name}"] + grad * scale * scale
+        return -lr * u
+
+
+def minimise(
     evaluate: Callable[[dict[str, np.ndarray], bool], tuple[float, dict | None]],
     params: dict[str, np.ndarray],
     names: list[str],
     scales: dict[str, float],
     iterations: int,
     learning_rate: float,
+    method: str = "adam",
     bounds: dict[str, tuple[float, float]] | None = None,
-    callback: Callable[[int, float], None] | None = None,
+    terms: Callable[[], dict[str, float]] | None = None,
+    on_iteration: Callable[[dict, list[dict]], None] | None = None,
+    checkpoint: Path | None = None,
+    resume: bool = False,
 ) -> OptimizeResult:
-    """Minimise ``evaluate`` over the parameters ``names`` with Adam (beta 0.9, 0.999).
+    """Minimise ``evaluate`` over the parameters ``names`` for ``iterations`` iterations.
 
-    The step of each parameter is ``learning_rate * scales[name]`` (Adam's
-    normalised step), so one learning rate serves impulses [N s] and moduli
-    [Pa] alike. ``bounds`` clip a parameter after each step (e.g. nu < 0.5).
+    Each iteration's row (``OptimizeResult.history``): iteration, loss, the loss terms
+    (``terms()``), the gradient's norm per parameter ("grad:<name>") and seconds;
+    ``on_iteration(row, history)`` after each. The loss of the final parameters is evaluated
+    once more at the end.
     """
-    beta1, beta2, eps = 0.9, 0.999, 1e-12
+    if method not in METHODS:
+        raise InputError(f"optimize.method: '{method}' is not one of {list(METHODS)}")
     params = {k: np.array(v, dtype=np.float64, copy=True) for k, v in params.items()}
-    m = {k: np.zeros_like(params[k]) for k in names}
-    v = {k: np.zeros_like(params[k]) for k in names}
+    optimiser = (Adam if method == "adam" else SGD)(names, params)
     result = OptimizeResult(params={k: a.copy() for k, a in params.items()})
-    for it in range(iterations):
+    start = 0
+    if resume:
+        start = _load(Path(checkpoint), params, optimiser, result, names, method)
+    for it in range(start, iterations):
+        t0 = time.perf_counter()
         loss, grads = evaluate(params, True)
-        result.losses.append(loss)
+        row = {"iteration": it, "loss": loss, **(terms() if terms else {})}
         if loss < result.best_loss:
             result.best_loss = loss
             result.params = {k: a.copy() for k, a in params.items()}
-        if callback is not None:
-            callback(it, loss)
         for k in names:
             g = grads[k]
             if not np.all(np.isfinite(g)):
@@ -53,20 +106,63 @@ def adam(
                     f"optimize: the gradient of '{k}' is not finite at iteration {it}; "
                     "lower optimize.learning_rate or check the scene's stability"
                 )
-            m[k] = beta1 * m[k] + (1 - beta1) * g
-            v[k] = beta2 * v[k] + (1 - beta2) * g * g
-            m_hat = m[k] / (1 - beta1 ** (it + 1))
-            v_hat = v[k] / (1 - beta2 ** (it + 1))
-            params[k] = params[k] - learning_rate * scales[k] * m_hat / (np.sqrt(v_hat) + eps)
+            row[f"grad:{k}"] = float(np.linalg.norm(g))
+            params[k] = params[k] + optimiser.step(it, k, g, learning_rate, scales[k])
             bound = (bounds or {}).get(k) or (bounds or {}).get(k.split(".", 1)[-1])  # "towel.k_bend" -> k_bend
             if bound:
                 params[k] = np.clip(params[k], *bound)
+        row["seconds"] = time.perf_counter() - t0
+        result.losses.append(loss)
+        result.history.append(row)
+        if checkpoint is not None:
+            _save(Path(checkpoint), params, optimiser, result, it + 1, method)
+        if on_iteration is not None:
+            on_iteration(row, result.history)
     final, _ = evaluate(params, False)
     result.losses.append(final)
     if final < result.best_loss:
         result.best_loss = final
         result.params = {k: a.copy() for k, a in params.items()}
     return result
+
+
+def adam(evaluate, params, names, scales, iterations, learning_rate, bounds=None, callback=None) -> OptimizeResult:
+    """``minimise`` with Adam; ``callback(iteration, loss)`` after each iteration."""
+    on_iteration = None if callback is None else (lambda row, _history: callback(row["iteration"], row["loss"]))
+    return minimise(evaluate, params, names, scales, iterations, learning_rate, "adam", bounds, None, on_iteration)
+
+
+def _save(path: Path, params, optimiser, result: OptimizeResult, done: int, method: str) -> None:
+    """Everything a resumed run needs, written atomically (a crash mid-write keeps the last one)."""
+    arrays = {f"param:{k}": v for k, v in params.items()}
+    arrays.update({f"best:{k}": v for k, v in result.params.items()})
+    arrays.update({f"opt:{k}": v for k, v in optimiser.state.items()})
+    meta = {"done": done, "method": method, "best_loss": result.best_loss, "losses": result.losses}
+    meta["history"] = result.history
+    tmp = path.with_name(path.name + ".tmp.npz")
+    np.savez(tmp, meta=np.array(json.dumps(meta)), **arrays)
+    tmp.replace(path)
+
+
+def _load(path: Path, params, optimiser, result: OptimizeResult, names: list[str], method: str) -> int:
+    """Restore a checkpoint into ``params``, ``optimiser`` and ``result``; returns the iterations done."""
+    if not path.is_file():
+        raise InputError(f"--resume: no checkpoint at {path}; run `cosim optimize` without --resume first")
+    data = np.load(path, allow_pickle=False)
+    meta = json.loads(str(data["meta"]))
+    saved = sorted(k.split(":", 1)[1] for k in data.files if k.startswith("opt:"))
+    if meta["method"] != method or saved != sorted(optimiser.state):
+        raise InputError(
+            f"--resume: {path} is a {meta['method']} run over other parameters; "
+            f"resume with the same method and optimize.params ({method}, {names})"
+        )
+    for k in params:
+        params[k] = data[f"param:{k}"].copy()
+        result.params[k] = data[f"best:{k}"].copy()
+    for k in optimiser.state:
+        optimiser.state[k] = data[f"opt:{k}"].copy()
+    result.best_loss, result.losses, result.history = meta["best_loss"], meta["losses"], meta["history"]
+    return int(meta["done"])
 
 
 PARAM_BOUNDS = {

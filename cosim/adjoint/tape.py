@@ -69,6 +69,7 @@ class Tape:
         material: dict[str, dict[str, np.ndarray]] = {}
         for n in reversed(range(n_steps)):
             out = step_vjp(self.records[n], grad_state)
+            _check_finite(out, n)
             grad_state = _plus(out["state"], running[n])
             impulses[n] = out.get("impulse")
             for name, g in out["action"].items():
@@ -89,3 +90,22 @@ def _plus(grad: dict[str, dict[str, np.ndarray]], extra: dict | None) -> dict[st
         for key, value in g.items():
             out.setdefault(name, {})[key] = out.get(name, {}).get(key, 0.0) + value
     return out
+
+
+def _check_finite(out: dict, n: int) -> None:
+    """Stop where the adjoint first turns non-finite (the backward pass meets steps from the last to the
+    first, so the first bad step met is where it starts), naming the macro step, engine and quantity."""
+    from cosim.errors import SimulationError
+
+    groups = {f"{engine}.{key}": g for engine, grads in out["state"].items() for key, g in grads.items()}
+    groups.update({f"{engine}.action": g for engine, g in out["action"].items() if g is not None})
+    for engine, grads in out["material"].items():
+        groups.update({f"{engine}.{key}": g for key, g in grads.items()})
+    if out.get("impulse") is not None:
+        groups["mpm.impulse"] = out["impulse"]
+    for name, g in groups.items():
+        if not np.all(np.isfinite(g)):
+            raise SimulationError(
+                f"gradient: dL/d({name}) is not finite at macro step {n} (the backward pass reached it from the "
+                "end); the forward step there is likely unstable: check its CFL and contact, or lower time.frame_dt"
+            )
