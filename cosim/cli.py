@@ -160,7 +160,7 @@ def cmd_optimize(args) -> int:
         iterations,
         lr,
         method,
-        PARAM_BOUNDS,
+        {**PARAM_BOUNDS, **obj.bounds()},
         terms=lambda: dict(obj.loss.values),
         on_iteration=on_iteration,
         checkpoint=out / "checkpoint.npz",

@@ -61,6 +61,7 @@ class ActionPlan:
 
     sequence: np.ndarray
     hold: int
+    bounds: tuple[np.ndarray, np.ndarray] | None = None  # per-entry (lower, upper), for optimisers
 
     def segment(self, n: int, segments: int) -> int:
         """Which of ``segments`` held actions macro step n uses (the last one after the sequence)."""

@@ -409,3 +409,47 @@ def test_coupler_pieces_match_central_differences():
 
             fd = (f(hi) - f(lo)) / (2 * eps)
             assert abs(grads[name][idx] - fd) < 1e-7 * max(1.0, abs(fd)), (name, idx)
+
+
+def test_optimised_actions_stay_within_their_bounds():
+    """A joint-velocity target (+5 m/s for the free box, needing ~700 N) far beyond the x-force bound
+    of 30 N: Adam drives every segment's x-force to the bound and no entry leaves [lower, upper];
+    a scene whose initial actions lie outside the bounds is refused by key."""
+    from cosim.adjoint.optimize import PARAM_BOUNDS, minimise
+    from cosim.errors import SceneError
+
+    box = free_box("box", [0.615, 0.52], [0.15, 0.15], 100.0)
+    box["controls"] = {"box": "torque"}
+    actions = {"hold": 2, "initial": [-20.0, 5.0, 0.5], "bounds": [[-30.0, -10.0, -1.0], [30.0, 10.0, 1.0]]}
+    loss = {"type": "joint_target", "skeleton": "box", "joint": "box", "target": [5.0, 0.0, 0.0], "velocity": True}
+    scene = coupled_scene(
+        [elastic("ball", [0.3, 0.5], [0.1, 0.1], [0.0, 0.0], E=2e3)],
+        [box],
+        "grid",
+        cells=32,
+        steps=6,
+        substeps=2,
+        articulated={"actions": actions},
+        loss=loss,
+    )
+    obj = Objective(build_system(scene, requires_grad=True))
+    bounds = {**PARAM_BOUNDS, **obj.bounds()}
+    result = minimise(obj.evaluate, obj.initial_params(), ["action"], obj.natural_scales(), 8, 0.5, bounds=bounds)
+    final = result.params["action"]
+    assert np.all(final >= [-30.0, -10.0, -1.0]) and np.all(final <= [30.0, 10.0, 1.0])
+    assert np.all(final[:, 0] > 29.0)  # pressed against the bound (the unbounded optimum is ~700 N)
+    assert result.best_loss < result.losses[0]
+    outside = dict(actions, initial=[-40.0, 5.0, 0.5])
+    with pytest.raises(SceneError, match="articulated.actions: the initial actions lie outside bounds"):
+        build_system(
+            coupled_scene(
+                [elastic("ball", [0.3, 0.5], [0.1, 0.1], [0.0, 0.0], E=2e3)],
+                [box],
+                "grid",
+                cells=32,
+                steps=6,
+                substeps=2,
+                articulated={"actions": outside},
+                loss=loss,
+            )
+        )

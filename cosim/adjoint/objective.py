@@ -65,6 +65,15 @@ class Objective:
                 out[name] = self.system.plans[p.engine].sequence.copy()
         return out
 
+    def bounds(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """Per-entry (lower, upper) limits of the action parameters whose scene declares ``bounds``."""
+        out = {}
+        for name, p in self.parameters.items():
+            plan = self.system.plans.get(p.engine) if p.key == "action" else None
+            if plan is not None and plan.bounds is not None:
+                out[name] = plan.bounds
+        return out
+
     def natural_scales(self) -> dict[str, float]:
         """Each parameter's natural size: finite-difference and optimiser steps are fractions of it
         (inputs: their largest magnitude, at least the declared scale)."""

@@ -24,10 +24,11 @@ def make_term(spec, dim, seed, slices, mass, rigid, cloths, dx, source_dir, key:
         if rigid is None:
             raise SceneError(f"{key}.type: joint_target needs an articulated: section")
         dofs, engine, target = rigid.dof_indices(spec.skeleton, spec.joint), rigid.name, np.asarray(spec.target, float)
+        quantity = "qd" if spec.velocity else "q"
 
-        def joint(state, grad, weight):  # |q_joint - target|^2
-            diff = state[engine]["q"][dofs] - target
-            grad[engine]["q"][dofs] += weight * 2.0 * diff
+        def joint(state, grad, weight):  # |q_joint - target|^2 (or its velocities)
+            diff = state[engine][quantity][dofs] - target
+            grad[engine][quantity][dofs] += weight * 2.0 * diff
             return float(diff @ diff)
 
         return joint

@@ -13,7 +13,7 @@ import math
 import numpy as np
 
 from cosim.errors import SceneError
-from cosim.scene.actions import action_sequence
+from cosim.scene.actions import action_bounds, action_sequence
 from cosim.system import ActionPlan
 
 
@@ -76,5 +76,6 @@ def build_cloth(scene, index: int):
     plan = None
     if controls:
         hold = spec.actions.hold
-        plan = ActionPlan(action_sequence(spec.actions, engine.action_size, math.ceil(scene.steps / hold)), hold)
+        sequence = action_sequence(spec.actions, engine.action_size, math.ceil(scene.steps / hold))
+        plan = ActionPlan(sequence, hold, action_bounds(spec.actions, engine.action_size, f"{key}.actions"))
     return engine, plan

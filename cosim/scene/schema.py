@@ -174,7 +174,8 @@ class LossTermSpec(Strict):
     - weighted_positions: mean over particles of w_p . x_p with fixed seeded
       normal weights w_p: a generic probe of every particle's final position;
     - com_target: squared distance [m^2] of a body's centre of mass to ``target``;
-    - joint_target: squared distance of a DART joint's positions to ``target``;
+    - joint_target: squared distance of a DART joint's positions (``velocity``: velocities) to
+      ``target``; on a free joint, the rigid body's pose (rotation vector, position) or twist;
     - pose_target: mean squared distance [m^2] of a body's points (particles or cloth vertices)
       to their start positions rotated by ``rotation`` about ``pivot`` and shifted by ``target``;
     - chamfer: the symmetric Chamfer distance [m^2] between a body's points and the point set
@@ -194,6 +195,7 @@ class LossTermSpec(Strict):
     rest_positions: Any = Field(default=None, exclude=True)  # set by the loss for MPM bodies, not in files
     skeleton: str | None = None  # joint_target: the articulated skeleton
     joint: str | None = None  # joint_target: its joint
+    velocity: bool = False  # joint_target: on the joint's velocities instead of its positions
     weight: float = 1.0
     running: bool = False  # summed over the states after every macro step (and the initial one)
 
@@ -321,6 +323,8 @@ class ActionSpec(Strict):
     hold: Annotated[int, Field(ge=1)] = 1
     initial: Vec | None = None  # the action of every segment not in ``sequence`` (default zeros)
     sequence: list[Vec] = []  # actions of the first segments
+    # per-entry [lower, upper] limits: `cosim optimize` projects the actions onto them after each step
+    bounds: Annotated[list[Vec], Field(min_length=2, max_length=2)] | None = None
 
 
 class ArticulatedSpec(Strict):
