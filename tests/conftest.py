@@ -64,14 +64,14 @@ def run_cli(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
     )
 
 
-def shipped_scenes() -> list:
-    """Every scene under scenes/, as pytest params; those that need the optional pybullet wheel
-    (paths "pybullet_data:...") are skipped where it is not installed."""
+def shipped_scenes(exclude: tuple[str, ...] = ()) -> list:
+    """Every scene under scenes/ but ``exclude`` (names), as pytest params; those that need the
+    optional pybullet wheel (paths "pybullet_data:...") are skipped where it is not installed."""
     import importlib.util
 
     have_pybullet = importlib.util.find_spec("pybullet_data") is not None
     params = []
-    for path in sorted(SCENES.glob("*.yaml")):
+    for path in sorted(p for p in SCENES.glob("*.yaml") if p.stem not in exclude):
         needs = "pybullet_data:" in path.read_text()
         skip = [pytest.mark.skip(reason='needs the optional pybullet wheel: pip install -e ".[panda]"')]
         params.append(pytest.param(path, id=path.stem, marks=skip if needs and not have_pybullet else []))

@@ -14,8 +14,12 @@ from conftest import ROOT, run_cli, scene_dict, shipped_scenes
 
 from cosim.scene import load_scene
 
+# The cloth tasks run in-process and are checked by numbers in test_cloth_scenes.py; through the CLI
+# (the same path for every scene) cloth is covered by cloth_catch, the default scene.
+IN_PROCESS = ("make_taco", "push_towel", "towel_squash")
 
-@pytest.mark.parametrize("path", shipped_scenes())
+
+@pytest.mark.parametrize("path", shipped_scenes(exclude=IN_PROCESS))
 def test_every_shipped_scene_runs_and_writes_its_outputs(path, tmp_path):
     res = run_cli("run", str(path), "--steps", "4", "--out", str(tmp_path), "--quiet")
     assert res.returncode == 0, res.stderr
