@@ -345,6 +345,16 @@ def loss_term_problems(loss, key: str, loss_bodies: list[str], scene) -> list[st
         problems.append(f"{key}.target: com_target needs a target point")
     if loss.type == "chamfer" and loss.points is None:
         problems.append(f"{key}.points: chamfer needs its target point set (file, shape or rollout)")
+    elif loss.type == "chamfer":
+        points = loss.points
+        given = [k for k in ("file", "shape", "rollout") if getattr(points, k) is not None]
+        if len(given) != 1:
+            problems.append(f"{key}.points: give exactly one of file, shape or rollout (got {given or 'none'})")
+        for k in ("file", "rollout"):
+            name = getattr(points, k)
+            if name is not None and not (scene.source_dir / name).is_file():
+                hint = " (`cosim run SCENE --save-target` writes OUT/target.npz)" if k == "rollout" else ""
+                problems.append(f"{key}.points.{k}: no such file: {scene.source_dir / name}{hint}")
     if loss.type == "joint_target":
         if None in (loss.skeleton, loss.joint, loss.target):
             problems.append(f"{key}: joint_target needs skeleton, joint and target (the joint's positions)")
