@@ -179,7 +179,8 @@ def cmd_optimize(args) -> int:
     recorder = Recorder(sim)
     obj.rollout(result.params, on_step=lambda n: recorder(n) if n == 0 or recorder.wants(n) else None)
     preview = recorder.write(out)
-    written = ["params.npz", "optimization.json", "optimization.csv", "loss.png", "checkpoint.npz", "trajectory.npz"]
+    written = ["params.npz", "optimization.json", "optimization.csv", "loss.png", "trajectory.npz"]
+    written += ["checkpoint.npz"] if method != "lbfgs" else []  # scipy's L-BFGS-B is not checkpointed
     print("wrote " + ", ".join(f"{out}/{name}" for name in written + ([preview] if preview else [])))
     return 0
 
@@ -304,7 +305,7 @@ def make_parser() -> argparse.ArgumentParser:
     o.add_argument("--lr", type=positive_float, help="learning rate, a fraction of each parameter's scale")
     o.add_argument("--steps", type=positive_int, help="macro steps of the rollout (default: the scene's)")
     o.add_argument("--out", help="output folder (default: out/SCENE_optimize)")
-    o.add_argument("--method", choices=["adam", "sgd"], help="optimiser (default: optimize.method, adam)")
+    o.add_argument("--method", choices=["adam", "sgd", "lbfgs"], help="optimiser (default: optimize.method, adam)")
     o.add_argument(
         "--resume", action="store_true", help="continue from OUT/checkpoint.npz (saved after every iteration)"
     )

@@ -1,4 +1,4 @@
-"""Gradient-based optimisation of a rollout's inputs on the adjoint gradient: Adam or SGD, resumable.
+"""Gradient-based optimisation of a rollout's inputs on the adjoint gradient: Adam, SGD or L-BFGS-B.
 
 Every parameter steps by ``learning_rate * scales[name]`` (Adam: times its normalised
 moment; SGD: times the raw gradient scaled by the parameter's size, g * scale^2), so one
@@ -7,7 +7,8 @@ scaled, clipped or dropped: bounds (e.g. nu < 0.5) project the parameters after 
 
 With a ``checkpoint`` path the parameters, the optimiser's moments and the history are
 saved after every iteration; ``resume`` continues from it, so an interrupted run ends
-where an uninterrupted one does.
+where an uninterrupted one does (Adam and SGD; scipy's L-BFGS-B keeps its memory inside,
+so an L-BFGS run is not resumable).
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ import numpy as np
 
 from cosim.errors import InputError, SimulationError
 
-METHODS = ("adam", "sgd")
+METHODS = ("adam", "sgd", "lbfgs")
 
 
 @dataclass
@@ -86,6 +87,10 @@ def minimise(
     """
     if method not in METHODS:
         raise InputError(f"optimize.method: '{method}' is not one of {list(METHODS)}")
+    if method == "lbfgs":
+        if resume:
+            raise InputError("--resume: an L-BFGS run cannot be resumed (scipy keeps its memory); rerun it")
+        return _lbfgs(evaluate, params, names, scales, iterations, bounds, terms, on_iteration)
     params = {k: np.array(v, dtype=np.float64, copy=True) for k, v in params.items()}
     optimiser = (Adam if method == "adam" else SGD)(names, params)
     result = OptimizeResult(params={k: a.copy() for k, a in params.items()})
@@ -123,6 +128,55 @@ def minimise(
     if final < result.best_loss:
         result.best_loss = final
         result.params = {k: a.copy() for k, a in params.items()}
+    return result
+
+
+def _lbfgs(evaluate, params, names, scales, iterations, bounds, terms, on_iteration) -> OptimizeResult:
+    """scipy's L-BFGS-B over the parameters in units of their scales (bounds likewise); one history
+    row per function evaluation (line searches evaluate more than once per iteration)."""
+    from scipy.optimize import minimize
+
+    params = {k: np.array(v, dtype=np.float64, copy=True) for k, v in params.items()}
+    sizes = [params[k].size for k in names]
+    result = OptimizeResult(params={k: a.copy() for k, a in params.items()})
+
+    def unpack(z: np.ndarray) -> dict[str, np.ndarray]:
+        out, start = dict(params), 0
+        for k, n in zip(names, sizes, strict=True):
+            out[k] = z[start : start + n].reshape(params[k].shape) * scales[k]
+            start += n
+        return out
+
+    def fun(z: np.ndarray) -> tuple[float, np.ndarray]:
+        t0 = time.perf_counter()
+        current = unpack(z)
+        loss, grads = evaluate(current, True)
+        row = {"iteration": len(result.history), "loss": loss, **(terms() if terms else {})}
+        for k in names:
+            if not np.all(np.isfinite(grads[k])):
+                raise SimulationError(f"optimize: the gradient of '{k}' is not finite at evaluation {row['iteration']}")
+            row[f"grad:{k}"] = float(np.linalg.norm(grads[k]))
+        row["seconds"] = time.perf_counter() - t0
+        result.losses.append(loss)
+        result.history.append(row)
+        if loss < result.best_loss:
+            result.best_loss, result.params = loss, {k: a.copy() for k, a in current.items()}
+        if on_iteration is not None:
+            on_iteration(row, result.history)
+        return loss, np.concatenate([(grads[k] * scales[k]).ravel() for k in names])
+
+    box = []
+    for k, n in zip(names, sizes, strict=True):
+        bound = (bounds or {}).get(k) or (bounds or {}).get(k.split(".", 1)[-1])
+        lo, hi = (np.full(params[k].shape, -np.inf), np.full(params[k].shape, np.inf)) if not bound else bound
+        lo = np.broadcast_to(np.asarray(lo, float), params[k].shape).ravel() / scales[k]
+        hi = np.broadcast_to(np.asarray(hi, float), params[k].shape).ravel() / scales[k]
+        box += [(None if np.isinf(a) else a, None if np.isinf(b) else b) for a, b in zip(lo, hi, strict=True)]
+    z0 = np.concatenate([(params[k] / scales[k]).ravel() for k in names])
+    # scipy's stopping tolerances are absolute (gtol 1e-5 on the projected gradient): a loss of 1e-3 m^2
+    # stopped after one evaluation (measured), so only the iteration budget stops the run
+    options = {"maxiter": iterations, "gtol": 0.0, "ftol": 0.0}
+    minimize(fun, z0, jac=True, method="L-BFGS-B", bounds=box, options=options)
     return result
 
 

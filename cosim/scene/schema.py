@@ -416,12 +416,12 @@ class GradientSpec(Strict):
 
 
 class OptimizeSpec(Strict):
-    """`cosim optimize`: Adam or SGD (momentum 0.9) on the loss's adjoint gradient."""
+    """`cosim optimize`: Adam, SGD (momentum 0.9) or L-BFGS-B on the loss's adjoint gradient."""
 
     params: list[ParamName] = ["impulse"]
     iterations: Annotated[int, Field(ge=1, le=100000)] = 30
     learning_rate: Positive = 0.05  # a fraction of each parameter's natural scale per step
-    method: Literal["adam", "sgd"] = "adam"
+    method: Literal["adam", "sgd", "lbfgs"] = "adam"
 
 
 class OutputSpec(Strict):
