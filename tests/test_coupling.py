@@ -422,17 +422,14 @@ def test_optimised_actions_stay_within_their_bounds():
     box["controls"] = {"box": "torque"}
     actions = {"hold": 2, "initial": [-20.0, 5.0, 0.5], "bounds": [[-30.0, -10.0, -1.0], [30.0, 10.0, 1.0]]}
     loss = {"type": "joint_target", "skeleton": "box", "joint": "box", "target": [5.0, 0.0, 0.0], "velocity": True}
-    scene = coupled_scene(
-        [elastic("ball", [0.3, 0.5], [0.1, 0.1], [0.0, 0.0], E=2e3)],
-        [box],
-        "grid",
-        cells=32,
-        steps=6,
-        substeps=2,
-        articulated={"actions": actions},
-        loss=loss,
-    )
-    obj = Objective(build_system(scene, requires_grad=True))
+
+    def scene(actions):
+        ball = elastic("ball", [0.3, 0.5], [0.1, 0.1], [0.0, 0.0], E=2e3)
+        return coupled_scene(
+            [ball], [box], "grid", cells=32, steps=6, substeps=2, articulated={"actions": actions}, loss=loss
+        )
+
+    obj = Objective(build_system(scene(actions), requires_grad=True))
     bounds = {**PARAM_BOUNDS, **obj.bounds()}
     result = minimise(obj.evaluate, obj.initial_params(), ["action"], obj.natural_scales(), 8, 0.5, bounds=bounds)
     final = result.params["action"]
@@ -441,15 +438,4 @@ def test_optimised_actions_stay_within_their_bounds():
     assert result.best_loss < result.losses[0]
     outside = dict(actions, initial=[-40.0, 5.0, 0.5])
     with pytest.raises(SceneError, match="articulated.actions: the initial actions lie outside bounds"):
-        build_system(
-            coupled_scene(
-                [elastic("ball", [0.3, 0.5], [0.1, 0.1], [0.0, 0.0], E=2e3)],
-                [box],
-                "grid",
-                cells=32,
-                steps=6,
-                substeps=2,
-                articulated={"actions": outside},
-                loss=loss,
-            )
-        )
+        build_system(scene(outside))

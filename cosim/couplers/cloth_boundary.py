@@ -201,7 +201,7 @@ class ClothBoundary:
                 n = self.frame_n[k, p]
                 d = self.frame_d[k, p] + n.dot(x - self.frame_x[k, p])
         else:
-            f = self.node_face[ti.cast(x * self.engine.inv_dx + 0.5, ti.i32)]
+            f = self._node_face(x)
             if f >= 0:
                 d, n, _w = self._face_geometry(f, x, 1, 0)
         return f, d, n
@@ -217,40 +217,51 @@ class ClothBoundary:
         return d, n
 
     @ti.func
-    def contact_velocity(self, s, b: ti.template(), x, p):
-        v = ti.Vector.zero(float, 3)
+    def _vertex_weights(self, s, x, p):
+        """(faces (CANDIDATES,) or -1, weights (CANDIDATES, 3)) spreading a contact at x over cloth vertices:
+        a particle's blended frame, or a grid node's nearest face (row 0). The weights sum to one."""
+        faces = ti.Vector([-1] * CANDIDATES)
+        weights = ti.Matrix.zero(float, CANDIDATES, 3)
         if p >= 0:
             k = s % self.slots
             for j in ti.static(range(CANDIDATES)):
-                g = self.tracer.candidate_s[k, p, j]
-                if g >= 0:
-                    tri, w = self.query.faces[g], self.frame_w[k, p, j]
-                    v += w[0] * self.vel[tri[0]] + w[1] * self.vel[tri[1]] + w[2] * self.vel[tri[2]]
+                faces[j] = self.tracer.candidate_s[k, p, j]
+                w = self.frame_w[k, p, j]
+                for i in ti.static(range(3)):
+                    weights[j, i] = w[i]
         else:
-            f = self.node_face[ti.cast(x * self.engine.inv_dx + 0.5, ti.i32)]
+            f = self._node_face(x)
             if f >= 0:
                 _d, _n, w = self._face_geometry(f, x, 1, 0)
-                tri = self.query.faces[f]
-                v = w[0] * self.vel[tri[0]] + w[1] * self.vel[tri[1]] + w[2] * self.vel[tri[2]]
+                faces[0] = f
+                for i in ti.static(range(3)):
+                    weights[0, i] = w[i]
+        return faces, weights
+
+    @ti.func
+    def contact_velocity(self, s, b: ti.template(), x, p):
+        faces, weights = self._vertex_weights(s, x, p)
+        v = ti.Vector.zero(float, 3)
+        for j in ti.static(range(CANDIDATES)):
+            if faces[j] >= 0:
+                tri = self.query.faces[faces[j]]
+                for i in ti.static(range(3)):
+                    v += weights[j, i] * self.vel[tri[i]]
         return v
 
     @ti.func
     def add_reaction(self, s, b: ti.template(), x, dp, p):
-        if p >= 0:
-            k = s % self.slots
-            for j in ti.static(range(CANDIDATES)):
-                g = self.tracer.candidate_s[k, p, j]
-                if g >= 0:
-                    tri, w = self.query.faces[g], self.frame_w[k, p, j]
-                    for i in ti.static(range(3)):
-                        self.impulse[tri[i]] -= w[i] * dp
-        else:
-            f = self.node_face[ti.cast(x * self.engine.inv_dx + 0.5, ti.i32)]
-            if f >= 0:
-                _d, _n, w = self._face_geometry(f, x, 1, 0)
-                tri = self.query.faces[f]
+        faces, weights = self._vertex_weights(s, x, p)
+        for j in ti.static(range(CANDIDATES)):
+            if faces[j] >= 0:
+                tri = self.query.faces[faces[j]]
                 for i in ti.static(range(3)):
-                    self.impulse[tri[i]] -= w[i] * dp
+                    self.impulse[tri[i]] -= weights[j, i] * dp
+
+    @ti.func
+    def _node_face(self, x):
+        """The nearest face of the grid node at x (queried at ``write``), or -1."""
+        return self.node_face[ti.cast(x * self.engine.inv_dx + 0.5, ti.i32)]
 
     # ------------------------------------------------------------------ the MPM engine's side
     def write(self, states: dict) -> None:
