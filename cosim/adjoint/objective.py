@@ -113,24 +113,21 @@ class Objective:
         """Loss value, and with ``grad`` its gradient per parameter (same shapes). Running loss
         terms are evaluated at every macro step's state, their gradients fed into the tape's
         backward pass at their step."""
-        running: list[dict | None] = []
+        running: list[tuple[float, dict | None]] = []  # per state: (value, gradient) of the running terms
         on_step = None
         if getattr(self.loss, "has_running", False):
             self.loss.reset_running()
-            total = [0.0]
 
             def on_step(n: int) -> None:
                 value, g = self.loss.running(self.system.state())
-                total[0] += value
-                running.append(g if grad else None)
+                running.append((value, g if grad else None))
 
         final = self.rollout(params, record=grad, on_step=on_step)
         value, dstate = self.loss(final)
-        if running:
-            value += total[0]
+        value += sum(v for v, _g in running)
         if not grad:
             return value, None
-        g = self.tape.backward(self.system.vjp, dstate, running or None)
+        g = self.tape.backward(self.system.vjp, dstate, [g for _v, g in running] or None)
         grads = {}
         for name, param_value in params.items():
             p = self.parameters[name]

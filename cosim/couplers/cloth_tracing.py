@@ -34,9 +34,9 @@ same); these kernels are never differentiated.
 
 Blend candidates: with the face, each traced particle keeps up to ``CANDIDATES`` faces of
 its neighbourhood whose distance is within ``cutoff`` of the nearest (the face first,
-then the others nearest first; a face whose closest point is a vertex already listed as
-a closest point is left out: it adds nothing), with each one's winding relative to the
-face. ``ClothBoundary`` blends their closest points so that a particle's contact frame
+then the others in hash order, a nearer one replacing the farthest once all places are
+taken; a face whose closest point is a vertex already listed as a closest point is left
+out: it adds nothing), with each one's winding relative to the face. ``ClothBoundary`` blends their closest points so that a particle's contact frame
 does not jump when its nearest face changes (see there).
 """
 
@@ -91,7 +91,7 @@ class PenetrationTracer:
         self.cutoff = 0.0  # [m] blend candidates lie within it of the nearest distance (set by the owner)
         self.candidate_s = ti.field(ti.i32, shape=(slots, N, CANDIDATES))  # face ids, -1 unused
         self.candidate_flag_s = ti.field(ti.i32, shape=(slots, N, CANDIDATES))  # winding relative to face_s
-        self.overflow = ti.field(ti.i32, shape=())  # particles with more candidates than kept (diagnostics)
+        self.overflow = ti.field(ti.i32, shape=())  # candidates beyond CANDIDATES met so far (diagnostics)
         self.box = ti.Vector.field(3, float, shape=2)  # the mesh's bounding box grown by the band
         self.errors = ti.field(ti.i32, shape=4)  # lost count, first lost particle, fast count, first fast particle
         self.real = query.real
