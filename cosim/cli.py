@@ -161,6 +161,7 @@ def cmd_optimize(args) -> int:
         lr,
         method,
         {**PARAM_BOUNDS, **obj.bounds()},
+        obj.projections(),
         terms=lambda: dict(obj.loss.values),
         on_iteration=on_iteration,
         checkpoint=out / "checkpoint.npz",

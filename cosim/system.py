@@ -62,6 +62,8 @@ class ActionPlan:
     sequence: np.ndarray
     hold: int
     bounds: tuple[np.ndarray, np.ndarray] | None = None  # per-entry (lower, upper), for optimisers
+    scale: np.ndarray | None = None  # (action size,) each entry's natural size, for optimisers
+    project: Any = None  # sequence -> the nearest allowed sequence (e.g. ReachProjection), for optimisers
 
     def segment(self, n: int, segments: int) -> int:
         """Which of ``segments`` held actions macro step n uses (the last one after the sequence)."""

@@ -27,17 +27,18 @@ def check_gradients(
     evaluate: Callable[[dict[str, np.ndarray], bool], tuple[float, dict | None]],
     params: dict[str, np.ndarray],
     names: list[str],
-    scales: dict[str, float],
+    scales: dict[str, float | np.ndarray],
     directions: int = 3,
     rel_step: float = 1e-6,
     seed: int = 0,
 ) -> list[DirectionCheck]:
-    """Compare g . d with central differences for random unit directions d.
+    """Compare g . d with central differences along random directions d.
 
     ``scales[name]`` is the parameter's natural size (dx for positions, E for
-    E, ...); the step is ``rel_step * scale`` along a direction normalised to
-    unit RMS per entry, so every group is perturbed by a comparable relative
-    amount. Run in float64: the truncation error is O(eps^2) and the round-off
+    E, ...; a number, or an array per entry that broadcasts to the parameter);
+    the direction is a random one of unit RMS per entry times the scale, the
+    step ``rel_step`` along it, so every entry is perturbed by a comparable
+    relative amount. Run in float64: the truncation error is O(eps^2) and the round-off
     O(1e-16 |L| / eps); when the loss changes by less than 1e-9 |L| (a weak
     parameter such as E) the step grows tenfold, at most three times, so the
     round-off stays below ~1e-7 relative. Growing further is not safe: contact
@@ -52,8 +53,8 @@ def check_gradients(
     for name in names:
         for k in range(directions):
             d = rng.standard_normal(params[name].shape)
-            d /= np.sqrt(np.mean(d * d))
-            eps = rel_step * scales[name]
+            d *= scales[name] / np.sqrt(np.mean(d * d))
+            eps = rel_step
             for attempt in range(4):
                 if attempt:
                     eps *= 10.0

@@ -65,23 +65,33 @@ class Objective:
                 out[name] = self.system.plans[p.engine].sequence.copy()
         return out
 
+    def _plan(self, name: str):
+        p = self.parameters[name]
+        return self.system.plans.get(p.engine) if p.key == "action" else None
+
     def bounds(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
         """Per-entry (lower, upper) limits of the action parameters whose scene declares ``bounds``."""
-        out = {}
-        for name, p in self.parameters.items():
-            plan = self.system.plans.get(p.engine) if p.key == "action" else None
-            if plan is not None and plan.bounds is not None:
-                out[name] = plan.bounds
-        return out
+        plans = {name: self._plan(name) for name in self.parameters}
+        return {name: plan.bounds for name, plan in plans.items() if plan is not None and plan.bounds is not None}
 
-    def natural_scales(self) -> dict[str, float]:
+    def projections(self) -> dict[str, Callable[[np.ndarray], np.ndarray]]:
+        """The action parameters whose scene constrains them (e.g. a cloth's ``reach``): value -> allowed value."""
+        plans = {name: self._plan(name) for name in self.parameters}
+        return {name: plan.project for name, plan in plans.items() if plan is not None and plan.project is not None}
+
+    def natural_scales(self) -> dict[str, float | np.ndarray]:
         """Each parameter's natural size: finite-difference and optimiser steps are fractions of it
-        (inputs: their largest magnitude, at least the declared scale)."""
+        (inputs: their largest magnitude, at least the declared scale; actions whose scene declares
+        ``scale``: that, per entry)."""
         values = self.initial_params()
-        return {
-            name: max(float(np.abs(values[name]).max()), p.scale) if p.kind == "input" else p.scale
-            for name, p in self.parameters.items()
-        }
+        out: dict[str, float | np.ndarray] = {}
+        for name, p in self.parameters.items():
+            plan = self._plan(name)
+            if plan is not None and plan.scale is not None:
+                out[name] = plan.scale
+            else:
+                out[name] = max(float(np.abs(values[name]).max()), p.scale) if p.kind == "input" else p.scale
+        return out
 
     def rollout(self, params: dict[str, np.ndarray], record: bool = False, on_step=None) -> dict:
         """Run all macro steps from ``params``; returns the final state of every engine.

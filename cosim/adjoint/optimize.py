@@ -3,7 +3,8 @@
 Every parameter steps by ``learning_rate * scales[name]`` (Adam: times its normalised
 moment; SGD: times the raw gradient scaled by the parameter's size, g * scale^2), so one
 learning rate serves impulses [N s], actions [m/s] and moduli [Pa] alike. No gradient is
-scaled, clipped or dropped: bounds (e.g. nu < 0.5) project the parameters after a step.
+scaled, clipped or dropped: bounds (e.g. nu < 0.5) and constraints (a cloth control's reach)
+project the parameters after a step.
 
 With a ``checkpoint`` path the parameters, the optimiser's moments and the history are
 saved after every iteration; ``resume`` continues from it, so an interrupted run ends
@@ -68,11 +69,12 @@ def minimise(
     evaluate: Callable[[dict[str, np.ndarray], bool], tuple[float, dict | None]],
     params: dict[str, np.ndarray],
     names: list[str],
-    scales: dict[str, float],
+    scales: dict[str, float | np.ndarray],
     iterations: int,
     learning_rate: float,
     method: str = "adam",
     bounds: dict[str, tuple[float, float]] | None = None,
+    projections: dict[str, Callable[[np.ndarray], np.ndarray]] | None = None,
     terms: Callable[[], dict[str, float]] | None = None,
     on_iteration: Callable[[dict, list[dict]], None] | None = None,
     checkpoint: Path | None = None,
@@ -83,11 +85,19 @@ def minimise(
     Each iteration's row (``OptimizeResult.history``): iteration, loss, the loss terms
     (``terms()``), the gradient's norm per parameter ("grad:<name>") and seconds;
     ``on_iteration(row, history)`` after each. The loss of the final parameters is evaluated
-    once more at the end.
+    once more at the end. ``scales[name]`` (a number, or an array that broadcasts to the
+    parameter) sets its step size; after each step the parameter is clipped to ``bounds[name]``
+    and mapped by ``projections[name]``.
     """
     if method not in METHODS:
         raise InputError(f"optimize.method: '{method}' is not one of {list(METHODS)}")
+    projections = projections or {}
     if method == "lbfgs":
+        if projections:
+            raise InputError(
+                f"optimize.method: L-BFGS-B takes box bounds only, and {sorted(projections)} are constrained "
+                "(e.g. a cloth's actions.reach); use adam or sgd"
+            )
         if resume:
             raise InputError("--resume: an L-BFGS run cannot be resumed (scipy keeps its memory); rerun it")
         return _lbfgs(evaluate, params, names, scales, iterations, bounds, terms, on_iteration)
@@ -116,6 +126,8 @@ def minimise(
             bound = (bounds or {}).get(k) or (bounds or {}).get(k.split(".", 1)[-1])  # "towel.k_bend" -> k_bend
             if bound:
                 params[k] = np.clip(params[k], *bound)
+            if k in projections:
+                params[k] = projections[k](params[k])
         row["seconds"] = time.perf_counter() - t0
         result.losses.append(loss)
         result.history.append(row)
@@ -138,6 +150,7 @@ def _lbfgs(evaluate, params, names, scales, iterations, bounds, terms, on_iterat
 
     params = {k: np.array(v, dtype=np.float64, copy=True) for k, v in params.items()}
     sizes = [params[k].size for k in names]
+    scales = {k: np.broadcast_to(np.asarray(scales[k], dtype=np.float64), params[k].shape) for k in names}
     result = OptimizeResult(params={k: a.copy() for k, a in params.items()})
 
     def unpack(z: np.ndarray) -> dict[str, np.ndarray]:
@@ -169,8 +182,8 @@ def _lbfgs(evaluate, params, names, scales, iterations, bounds, terms, on_iterat
     for k, n in zip(names, sizes, strict=True):
         bound = (bounds or {}).get(k) or (bounds or {}).get(k.split(".", 1)[-1])
         lo, hi = (np.full(params[k].shape, -np.inf), np.full(params[k].shape, np.inf)) if not bound else bound
-        lo = np.broadcast_to(np.asarray(lo, float), params[k].shape).ravel() / scales[k]
-        hi = np.broadcast_to(np.asarray(hi, float), params[k].shape).ravel() / scales[k]
+        lo = np.broadcast_to(np.asarray(lo, float), params[k].shape).ravel() / scales[k].ravel()
+        hi = np.broadcast_to(np.asarray(hi, float), params[k].shape).ravel() / scales[k].ravel()
         box += [(None if np.isinf(a) else a, None if np.isinf(b) else b) for a, b in zip(lo, hi, strict=True)]
     z0 = np.concatenate([(params[k] / scales[k]).ravel() for k in names])
     # scipy's stopping tolerances are absolute (gtol 1e-5 on the projected gradient): a loss of 1e-3 m^2
@@ -183,7 +196,9 @@ def _lbfgs(evaluate, params, names, scales, iterations, bounds, terms, on_iterat
 def adam(evaluate, params, names, scales, iterations, learning_rate, bounds=None, callback=None) -> OptimizeResult:
     """``minimise`` with Adam; ``callback(iteration, loss)`` after each iteration."""
     on_iteration = None if callback is None else (lambda row, _history: callback(row["iteration"], row["loss"]))
-    return minimise(evaluate, params, names, scales, iterations, learning_rate, "adam", bounds, None, on_iteration)
+    return minimise(
+        evaluate, params, names, scales, iterations, learning_rate, "adam", bounds, on_iteration=on_iteration
+    )
 
 
 def _save(path: Path, params, optimiser, result: OptimizeResult, done: int, method: str) -> None:

@@ -24,6 +24,14 @@ def make_term(spec, dim, seed, slices, mass, rigid, cloths, dx, source_dir, key:
         if rigid is None:
             raise SceneError(f"{key}.type: joint_target needs an articulated: section")
         dofs, engine, target = rigid.dof_indices(spec.skeleton, spec.joint), rigid.name, np.asarray(spec.target, float)
+        if spec.components is not None:
+            if max(spec.components) >= len(dofs):
+                raise SceneError(
+                    f"{key}.components: joint '{spec.joint}' has {len(dofs)} coordinates (0..{len(dofs) - 1})"
+                )
+            dofs = dofs[spec.components]
+        if len(target) != len(dofs):
+            raise SceneError(f"{key}.target: {len(dofs)} numbers (the joint's coordinates read), got {len(target)}")
         quantity = "qd" if spec.velocity else "q"
 
         def joint(state, grad, weight):  # |q_joint - target|^2 (or its velocities)

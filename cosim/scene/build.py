@@ -248,7 +248,7 @@ def _add_articulated(scene: Scene, mpm, out: Manipulators, slots: int, grad: boo
     """DART skeletons (``articulated:``): the engine, its action plan and, for the links the MPM
     sees, the coupler (a skeleton the MPM never sees needs none)."""
     from cosim.couplers.mpm_rigid import MPMRigidCoupler
-    from cosim.scene.actions import action_bounds, action_sequence
+    from cosim.scene.actions import action_bounds, action_scale, action_sequence
     from cosim.scene.articulated import build_articulated, link_shapes
 
     articulated = build_articulated(scene, scene.dx)
@@ -256,8 +256,9 @@ def _add_articulated(scene: Scene, mpm, out: Manipulators, slots: int, grad: boo
     out.engines.append(engine)
     if engine.action_size:
         sequence = action_sequence(scene.articulated.actions, engine.action_size, articulated.n_segments)
-        bounds = action_bounds(scene.articulated.actions, engine.action_size, "articulated.actions")
-        out.plans[engine.name] = ActionPlan(sequence, articulated.hold, bounds)
+        spec, key = scene.articulated.actions, "articulated.actions"
+        bounds, scale = action_bounds(spec, engine.action_size, key), action_scale(spec, engine.action_size, key)
+        out.plans[engine.name] = ActionPlan(sequence, articulated.hold, bounds, scale)
     if articulated.coupled:
         out.dart_coupler = MPMRigidCoupler(engine, articulated.coupled, scene.dim)
         out.couple(mpm, out.dart_coupler, articulated.grids, scene.dim, slots, grad)

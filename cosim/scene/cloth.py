@@ -13,7 +13,7 @@ import math
 import numpy as np
 
 from cosim.errors import SceneError
-from cosim.scene.actions import action_bounds, action_sequence
+from cosim.scene.actions import ReachProjection, action_bounds, action_scale, action_sequence
 from cosim.system import ActionPlan
 
 
@@ -77,5 +77,24 @@ def build_cloth(scene, index: int):
     if controls:
         hold = spec.actions.hold
         sequence = action_sequence(spec.actions, engine.action_size, math.ceil(scene.steps / hold))
-        plan = ActionPlan(sequence, hold, action_bounds(spec.actions, engine.action_size, f"{key}.actions"))
+        akey, size = f"{key}.actions", engine.action_size
+        plan = ActionPlan(
+            sequence, hold, action_bounds(spec.actions, size, akey), action_scale(spec.actions, size, akey)
+        )
+        if spec.actions.reach is not None:
+            plan.project = _reach(spec.actions.reach, mesh, controls, hold * scene.time.frame_dt, sequence, akey)
     return engine, plan
+
+
+def _reach(spec, mesh, controls, duration: float, sequence: np.ndarray, key: str) -> ReachProjection:
+    """The projection keeping each control's centroid within ``reach``, checked against the initial actions."""
+    if np.linalg.norm(spec.axis) == 0:
+        raise SceneError(f"{key}.reach.axis: a direction, not zero")
+    start = np.stack([mesh.vertices[group].mean(axis=0) for group in controls])
+    project = ReachProjection(start, duration, spec.center, spec.axis, spec.radius)
+    beyond = np.linalg.norm(project.radial(start), axis=1) > spec.radius * (1 + 1e-9)
+    if beyond.any():
+        raise SceneError(f"{key}.reach: control {int(np.argmax(beyond))} starts beyond reach.radius of the line")
+    if not np.allclose(project(sequence), sequence, rtol=1e-9, atol=1e-12):
+        raise SceneError(f"{key}: the initial actions move a control beyond reach.radius; start within reach")
+    return project

@@ -233,6 +233,9 @@ class ActionSpec(Strict):
     sequence: list[Vec] = []  # actions of the first segments
     # per-entry [lower, upper] limits: `cosim optimize` projects the actions onto them after each step
     bounds: Annotated[list[Vec], Field(min_length=2, max_length=2)] | None = None
+    # an entry's natural size (one number, or one per entry) in its units: optimiser and finite-difference
+    # steps are fractions of it (default: the largest |entry| of the initial actions)
+    scale: Positive | list[Positive] | None = None
 
 
 class ArticulatedSpec(Strict):
@@ -281,6 +284,22 @@ class ClothControlSpec(Strict):
     vertices: VertexSelectSpec
 
 
+class ReachSpec(Strict):
+    """Where a cloth's controls may go: each control's centroid stays within ``radius`` of the line
+    through ``center`` along ``axis`` (e.g. a tortilla's rim points within the tortilla's radius of
+    its fold line). `cosim optimize` projects the actions onto it after each step."""
+
+    center: Vec  # [m] a point of the line
+    axis: Vec  # its direction
+    radius: Positive  # [m]
+
+
+class ClothActionSpec(ActionSpec):
+    """A cloth's action sequence: (controls x 3) velocities [m/s] per action, held ``hold`` steps."""
+
+    reach: ReachSpec | None = None
+
+
 class ClothSpec(Strict):
     """A cloth simulated by our implicit cloth engine and coupled two-way with the MPM (3D)."""
 
@@ -289,7 +308,7 @@ class ClothSpec(Strict):
     material: ClothMaterialSpec = ClothMaterialSpec()
     fixed: VertexSelectSpec | None = None  # pinned vertices
     controls: list[ClothControlSpec] = []
-    actions: ActionSpec = ActionSpec()  # each action: (controls x 3) velocities [m/s], held ``hold`` steps
+    actions: ClothActionSpec = ClothActionSpec()
     thickness: Positive | None = None  # [m] contact distance to rigid bodies, default dx / 2
     tolerance: Positive = 1e-9  # Newton: residual force relative to the cloth's weight
     max_iterations: Annotated[int, Field(ge=1, le=1000)] = 50

@@ -27,8 +27,9 @@ class LossTermSpec(Strict):
     - weighted_positions: mean over particles of w_p . x_p with fixed seeded
       normal weights w_p: a generic probe of every particle's final position;
     - com_target: squared distance [m^2] of a body's centre of mass to ``target``;
-    - joint_target: squared distance of a DART joint's positions (``velocity``: velocities) to
-      ``target``; on a free joint, the rigid body's pose (rotation vector, position) or twist;
+    - joint_target: squared distance of a DART joint's positions (``velocity``: velocities), or of
+      their ``components``, to ``target``; on a free joint, the rigid body's pose (rotation vector,
+      position) or twist;
     - pose_target: mean squared distance [m^2] of a body's points (particles or cloth vertices)
       to their start positions rotated by ``rotation`` about ``pivot`` and shifted by ``target``;
     - chamfer: the symmetric Chamfer distance [m^2] between a body's points and the point set
@@ -49,6 +50,8 @@ class LossTermSpec(Strict):
     skeleton: str | None = None  # joint_target: the articulated skeleton
     joint: str | None = None  # joint_target: its joint
     velocity: bool = False  # joint_target: on the joint's velocities instead of its positions
+    # joint_target: which of the joint's coordinates (indices; default all): a free joint's height is [4]
+    components: Annotated[list[Annotated[int, Field(ge=0)]], Field(min_length=1)] | None = None
     weight: float = 1.0
     running: bool = False  # summed over the states after every macro step (and the initial one)
 
