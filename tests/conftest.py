@@ -76,3 +76,30 @@ def shipped_scenes(exclude: tuple[str, ...] = ()) -> list:
         skip = [pytest.mark.skip(reason='needs the optional pybullet wheel: pip install -e ".[panda]"')]
         params.append(pytest.param(path, id=path.stem, marks=skip if needs and not have_pybullet else []))
     return params
+
+
+def check_task_improves(task: str, steps: int, ratio: float, out: Path) -> None:
+    """`cosim optimize` on the shipped task ``task`` (its plain initial guess) for 3 iterations of a
+    ``steps``-step rollout: every iteration lowers the loss, the third below ``ratio`` times the first,
+    and the run writes its trajectory and loss curve."""
+    import csv
+    from itertools import pairwise
+
+    args = (
+        "optimize",
+        str(SCENES / f"{task}.yaml"),
+        "--steps",
+        str(steps),
+        "--iters",
+        "3",
+        "--out",
+        str(out),
+        "--quiet",
+    )
+    res = run_cli(*args)
+    assert res.returncode == 0, res.stderr
+    assert (out / "trajectory.npz").is_file() and (out / "loss.png").is_file()
+    losses = [float(r["loss"]) for r in csv.DictReader((out / "optimization.csv").open())]
+    assert len(losses) == 3
+    assert all(b < a for a, b in pairwise(losses)), losses
+    assert losses[-1] < ratio * losses[0], losses
