@@ -172,7 +172,7 @@ def cmd_optimize(args) -> int:
     first, best = result.losses[0], result.best_loss
     change = f" ({100 * (best - first) / abs(first):+.1f}%)" if first else ""
     print(f"loss {first:.6e} -> {best:.6e}{change} in {iterations} iterations ({wall:.1f} s)")
-    np.savez(out / "params.npz", **result.params)
+    np.savez(out / "params.npz", **{k: result.params[k] for k in names})  # the optimised ones, not x0 etc.
     write_history(out, result.history)
     plot_losses(out, result.losses, f"{scene.name}: {method}, {', '.join(names)}")
     summary = {"params": names, "method": method, "losses": result.losses, "best_loss": best, "wall_time_s": wall}
