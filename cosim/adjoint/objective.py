@@ -65,28 +65,27 @@ class Objective:
                 out[name] = self.system.plans[p.engine].sequence.copy()
         return out
 
-    def _plan(self, name: str):
-        p = self.parameters[name]
-        return self.system.plans.get(p.engine) if p.key == "action" else None
+    def _action_plans(self) -> dict:
+        """The action parameters' plans (``ActionPlan``: sequence, bounds, scale, projection), by name."""
+        plans = {name: self.system.plans.get(p.engine) for name, p in self.parameters.items() if p.key == "action"}
+        return {name: plan for name, plan in plans.items() if plan is not None}
 
     def bounds(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
         """Per-entry (lower, upper) limits of the action parameters whose scene declares ``bounds``."""
-        plans = {name: self._plan(name) for name in self.parameters}
-        return {name: plan.bounds for name, plan in plans.items() if plan is not None and plan.bounds is not None}
+        return {name: plan.bounds for name, plan in self._action_plans().items() if plan.bounds is not None}
 
     def projections(self) -> dict[str, Callable[[np.ndarray], np.ndarray]]:
         """The action parameters whose scene constrains them (e.g. a cloth's ``reach``): value -> allowed value."""
-        plans = {name: self._plan(name) for name in self.parameters}
-        return {name: plan.project for name, plan in plans.items() if plan is not None and plan.project is not None}
+        return {name: plan.project for name, plan in self._action_plans().items() if plan.project is not None}
 
     def natural_scales(self) -> dict[str, float | np.ndarray]:
         """Each parameter's natural size: finite-difference and optimiser steps are fractions of it
         (inputs: their largest magnitude, at least the declared scale; actions whose scene declares
         ``scale``: that, per entry)."""
-        values = self.initial_params()
+        values, plans = self.initial_params(), self._action_plans()
         out: dict[str, float | np.ndarray] = {}
         for name, p in self.parameters.items():
-            plan = self._plan(name)
+            plan = plans.get(name)
             if plan is not None and plan.scale is not None:
                 out[name] = plan.scale
             else:

@@ -123,7 +123,7 @@ def minimise(
                 )
             row[f"grad:{k}"] = float(np.linalg.norm(g))
             params[k] = params[k] + optimiser.step(it, k, g, learning_rate, scales[k])
-            bound = (bounds or {}).get(k) or (bounds or {}).get(k.split(".", 1)[-1])  # "towel.k_bend" -> k_bend
+            bound = _bound(bounds, k)
             if bound:
                 params[k] = np.clip(params[k], *bound)
             if k in projections:
@@ -141,6 +141,12 @@ def minimise(
         result.best_loss = final
         result.params = {k: a.copy() for k, a in params.items()}
     return result
+
+
+def _bound(bounds: dict | None, name: str):
+    """The bounds of parameter ``name``, by its full name or its engine-free one ("towel.k_bend" -> k_bend)."""
+    bounds = bounds or {}
+    return bounds.get(name) or bounds.get(name.split(".", 1)[-1])
 
 
 def _lbfgs(evaluate, params, names, scales, iterations, bounds, terms, on_iteration) -> OptimizeResult:
@@ -180,7 +186,7 @@ def _lbfgs(evaluate, params, names, scales, iterations, bounds, terms, on_iterat
 
     box = []
     for k, n in zip(names, sizes, strict=True):
-        bound = (bounds or {}).get(k) or (bounds or {}).get(k.split(".", 1)[-1])
+        bound = _bound(bounds, k)
         lo, hi = (np.full(params[k].shape, -np.inf), np.full(params[k].shape, np.inf)) if not bound else bound
         lo = np.broadcast_to(np.asarray(lo, float), params[k].shape).ravel() / scales[k].ravel()
         hi = np.broadcast_to(np.asarray(hi, float), params[k].shape).ravel() / scales[k].ravel()

@@ -36,8 +36,9 @@ Blend candidates: with the face, each traced particle keeps up to ``CANDIDATES``
 its neighbourhood whose distance is within ``cutoff`` of the nearest (the face first,
 then the others in hash order, a nearer one replacing the farthest once all places are
 taken; a face whose closest point is a vertex already listed as a closest point is left
-out: it adds nothing), with each one's winding relative to the face. ``ClothBoundary`` blends their closest points so that a particle's contact frame
-does not jump when its nearest face changes (see there).
+out: it adds nothing), with each one's winding relative to the face. ``ClothBoundary``
+blends their closest points so that a particle's contact frame does not jump when its
+nearest face changes (see there).
 """
 
 import numpy as np

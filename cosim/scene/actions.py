@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from cosim.errors import SceneError
+from cosim.system import ActionPlan
 
 
 def action_sequence(spec, action_size: int, n_segments: int) -> np.ndarray:
@@ -30,6 +31,13 @@ def action_bounds(spec, action_size: int, key: str) -> tuple[np.ndarray, np.ndar
     if np.any(sequence < lower) or np.any(sequence > upper):
         raise SceneError(f"{key}: the initial actions lie outside bounds; start inside [lower, upper]")
     return lower, upper
+
+
+def action_plan(spec, action_size: int, n_segments: int, key: str):
+    """The ``ActionPlan`` of an ``actions:`` block: its sequence of ``n_segments`` actions, held ``spec.hold``
+    steps each, with the block's bounds and scale (a cloth's ``reach`` projection is added by the cloth)."""
+    sequence = action_sequence(spec, action_size, n_segments)
+    return ActionPlan(sequence, spec.hold, action_bounds(spec, action_size, key), action_scale(spec, action_size, key))
 
 
 def action_scale(spec, action_size: int, key: str) -> np.ndarray | None:

@@ -17,7 +17,7 @@ from cosim.engines import so3
 from cosim.errors import SceneError
 from cosim.scene.particles import body_positions
 from cosim.scene.schema import Scene
-from cosim.system import ActionPlan, Control, CoupledSystem, Stepping
+from cosim.system import Control, CoupledSystem, Stepping
 
 
 def build_bodies(scene: Scene):
@@ -248,17 +248,15 @@ def _add_articulated(scene: Scene, mpm, out: Manipulators, slots: int, grad: boo
     """DART skeletons (``articulated:``): the engine, its action plan and, for the links the MPM
     sees, the coupler (a skeleton the MPM never sees needs none)."""
     from cosim.couplers.mpm_rigid import MPMRigidCoupler
-    from cosim.scene.actions import action_bounds, action_scale, action_sequence
+    from cosim.scene.actions import action_plan
     from cosim.scene.articulated import build_articulated, link_shapes
 
     articulated = build_articulated(scene, scene.dx)
     engine = articulated.engine
     out.engines.append(engine)
     if engine.action_size:
-        sequence = action_sequence(scene.articulated.actions, engine.action_size, articulated.n_segments)
-        spec, key = scene.articulated.actions, "articulated.actions"
-        bounds, scale = action_bounds(spec, engine.action_size, key), action_scale(spec, engine.action_size, key)
-        out.plans[engine.name] = ActionPlan(sequence, articulated.hold, bounds, scale)
+        plan = action_plan(scene.articulated.actions, engine.action_size, articulated.n_segments, "articulated.actions")
+        out.plans[engine.name] = plan
     if articulated.coupled:
         out.dart_coupler = MPMRigidCoupler(engine, articulated.coupled, scene.dim)
         out.couple(mpm, out.dart_coupler, articulated.grids, scene.dim, slots, grad)

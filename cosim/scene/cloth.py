@@ -13,8 +13,7 @@ import math
 import numpy as np
 
 from cosim.errors import SceneError
-from cosim.scene.actions import ReachProjection, action_bounds, action_scale, action_sequence
-from cosim.system import ActionPlan
+from cosim.scene.actions import ReachProjection, action_plan
 
 
 def build_mesh(spec, source_dir, key: str):
@@ -76,13 +75,10 @@ def build_cloth(scene, index: int):
     plan = None
     if controls:
         hold = spec.actions.hold
-        sequence = action_sequence(spec.actions, engine.action_size, math.ceil(scene.steps / hold))
-        akey, size = f"{key}.actions", engine.action_size
-        plan = ActionPlan(
-            sequence, hold, action_bounds(spec.actions, size, akey), action_scale(spec.actions, size, akey)
-        )
+        plan = action_plan(spec.actions, engine.action_size, math.ceil(scene.steps / hold), f"{key}.actions")
         if spec.actions.reach is not None:
-            plan.project = _reach(spec.actions.reach, mesh, controls, hold * scene.time.frame_dt, sequence, akey)
+            duration = hold * scene.time.frame_dt
+            plan.project = _reach(spec.actions.reach, mesh, controls, duration, plan.sequence, f"{key}.actions")
     return engine, plan
 
 
