@@ -72,6 +72,10 @@ class GridContact:
     def velocity(self, g, I):
         return self.output[g, I]
 
+    @ti.func
+    def velocity_grad(self, g, I, g_v):
+        self.output.grad[g, I] += g_v
+
     def apply(self, src: int, g: int, s: int, dt: float) -> None:
         self._apply(g, s, dt)
 
@@ -195,52 +199,103 @@ class ForecastContact:
         self.objective_ratios: list[float] = []
         self.upstream = engine.attach_grid_hook(self)
 
+    @ti.func
+    def _within_threshold(self, s, x, p):
+        """1 if a body is closer to x than the threshold (only those particles look ahead), else 0."""
+        nearest = 1e30
+        for source in ti.static(self.sources):
+            for b in ti.static(range(source.n)):
+                nearest = ti.min(nearest, source.distance(s, b, x, p))
+        return ti.select(nearest < self.threshold, 1, 0)
+
+    @ti.func
+    def _constrain(self, s, x, p, v_init, m_p, dt):
+        """BC_p of every body within the threshold applied in turn to v_init; returns the target
+        velocity. Each body's share r_b = v - v_out of the residual gives the material
+        sum_i w_i (-alpha m_p r_b) = -alpha m_p r_b, with moment (x_p - pos) x dp (B-spline weights
+        sum to 1 and reproduce x_p): one reaction per body."""
+        v = v_init
+        for source in ti.static(self.sources):
+            for b in ti.static(range(source.n)):
+                d, n = source.distance_normal(s, b, x, p)
+                if d < self.threshold:
+                    v_out = frictional_bc(v, n, source.contact_velocity(s, b, x, p), self.friction)
+                    smooth = self.blend(d)
+                    v_out = smooth * v_out + (1.0 - smooth) * v
+                    d_new, n_new = source.distance_normal(s, b, x + dt * v_out, p)
+                    if d_new < 0:
+                        v_out += (-d_new / dt) * n_new
+                    source.add_reaction(s, b, x, (-self.alpha * m_p) * (v - v_out), p)
+                    v = v_out
+        return v
+
     @ti.kernel
     def _forecast(self, src: ti.i32, g: ti.i32, s: ti.i32, dt: float):
-        """Look-ahead G2P v_init = W^T v_hat, BC_p of every body within the threshold (each
-        body's reaction from its own share of the residual), and the scatter of constrained
-        particles' W M_p r. One kernel (atomic adds only for constrained particles): each
-        launch costs ~50 us on this CPU, as much as the work here."""
+        """Look-ahead G2P v_init = W^T v_hat, BC_p (``_constrain``), and the scatter of the
+        constrained particles' W M_p r. One kernel (atomic adds only for constrained particles):
+        each launch costs ~50 us on this CPU, as much as the work here."""
         e = self.engine
         for p in range(e.n_particles):
             x = e.x[src, p]
-            nearest = 1e30  # particles farther than the threshold from every body skip the look-ahead
-            for source in ti.static(self.sources):
-                for b in ti.static(range(source.n)):
-                    nearest = ti.min(nearest, source.distance(s, b, x, p))
+            constrained = self._within_threshold(s, x, p)
             base, _fx, w = e.stencil(x)
             v_init = ti.Vector.zero(float, e.dim)
-            if nearest < self.threshold:
+            r = ti.Vector.zero(float, e.dim)
+            if constrained:
                 for offset in ti.static(ti.grouped(ti.ndrange(*([3] * e.dim)))):
-                    weight = e.stencil_weight(w, offset)
-                    v_init += weight * self.upstream.velocity(g, base + offset)
+                    v_init += e.stencil_weight(w, offset) * self.upstream.velocity(g, base + offset)
+                r = v_init - self._constrain(s, x, p, v_init, e.mass_of(p), dt)
+                for offset in ti.static(ti.grouped(ti.ndrange(*([3] * e.dim)))):  # correction += W M_p r
+                    self.correction[g, base + offset] += (e.stencil_weight(w, offset) * e.mass_of(p)) * r
             self.v_init[g, p] = v_init
-            v = v_init
-            constrained = 0
-            m_p = e.mass_of(p)
-            for source in ti.static(self.sources):
-                for b in ti.static(range(source.n)):
-                    d, n = source.distance_normal(s, b, x, p)
-                    if d < self.threshold:
-                        v_out = frictional_bc(v, n, source.contact_velocity(s, b, x, p), self.friction)
-                        smooth = self.blend(d)
-                        v_out = smooth * v_out + (1.0 - smooth) * v
-                        d_new, n_new = source.distance_normal(s, b, x + dt * v_out, p)
-                        if d_new < 0:
-                            v_out += (-d_new / dt) * n_new
-                        # this body's share r_b = v - v_out of the residual gives the material
-                        # sum_i w_i (-alpha m_p r_b) = -alpha m_p r_b, with moment (x_p - pos) x dp
-                        # (B-spline weights sum to 1 and reproduce x_p): one atomic pair per body
-                        source.add_reaction(s, b, x, (-self.alpha * m_p) * (v - v_out), p)
-                        v = v_out
-                        constrained = 1
-            r = v_init - v
             self.residual[g, p] = r
             self.constrained[g, p] = constrained
-            if constrained:  # correction += W M_p r
+
+    @ti.kernel
+    def _residual(self, src: ti.i32, g: ti.i32, s: ti.i32, dt: float):
+        """The residual r = v_init - BC_p(v_init) of ``_forecast`` alone: the part of the forecast
+        whose adjoint Taichi derives (the stencil transfers around it have hand-written ones)."""
+        e = self.engine
+        for p in range(e.n_particles):
+            if self.constrained[g, p]:
+                x = e.x[src, p]
+                self.residual[g, p] = self.v_init[g, p] - self._constrain(s, x, p, self.v_init[g, p], e.mass_of(p), dt)
+
+    @ti.kernel
+    def _scatter_adjoint(self, src: ti.i32, g: ti.i32):
+        """Adjoint of ``_forecast``'s correction scatter (correction_i += w_i m_p r): the correction's
+        adjoint gathered into r's and x's, per constrained particle."""
+        e = self.engine
+        for p in range(e.n_particles):
+            if self.constrained[g, p]:
+                base, fx, w = e.stencil(e.x[src, p])
+                slopes = e.stencil_slopes(fx)
+                r = self.residual[g, p]
+                g_r = ti.Vector.zero(float, e.dim)
+                g_x = ti.Vector.zero(float, e.dim)
                 for offset in ti.static(ti.grouped(ti.ndrange(*([3] * e.dim)))):
-                    weight = e.stencil_weight(w, offset)
-                    self.correction[g, base + offset] += (weight * m_p) * r
+                    g_corr = self.correction.grad[g, base + offset]
+                    g_r += e.stencil_weight(w, offset) * g_corr
+                    g_x += e.weight_gradient(w, slopes, offset) * g_corr.dot(r)
+                self.residual.grad[g, p] += e.mass_of(p) * g_r
+                e.x.grad[src, p] += e.mass_of(p) * g_x
+
+    @ti.kernel
+    def _gather_adjoint(self, src: ti.i32, g: ti.i32):
+        """Adjoint of ``_forecast``'s look-ahead gather (v_init = sum_i w_i v_hat_i): v_init's adjoint
+        scattered onto the upstream velocity's and gathered into x's, per constrained particle."""
+        e = self.engine
+        for p in range(e.n_particles):
+            if self.constrained[g, p]:
+                base, fx, w = e.stencil(e.x[src, p])
+                slopes = e.stencil_slopes(fx)
+                g_v_init = self.v_init.grad[g, p]
+                g_x = ti.Vector.zero(float, e.dim)
+                for offset in ti.static(ti.grouped(ti.ndrange(*([3] * e.dim)))):
+                    node = base + offset
+                    g_x += e.weight_gradient(w, slopes, offset) * g_v_init.dot(self.upstream.velocity(g, node))
+                    self.upstream.velocity_grad(g, node, e.stencil_weight(w, offset) * g_v_init)
+                e.x.grad[src, p] += g_x
 
     @ti.func
     def blend(self, d):
@@ -260,6 +315,17 @@ class ForecastContact:
         if m > 0:
             v -= (self.alpha / m) * self.correction[g, I]
         return v
+
+    @ti.func
+    def velocity_grad(self, g, I, g_v):
+        """Adjoint of ``velocity(g, I)``: into the upstream velocity's, the node mass's and the correction's."""
+        e = self.engine
+        self.upstream.velocity_grad(g, I, g_v)
+        m = e.grid_m[g, I]
+        if m > 0:
+            correction = self.correction[g, I]
+            e.grid_m.grad[g, I] += (self.alpha / (m * m)) * correction.dot(g_v)
+            self.correction.grad[g, I] -= (self.alpha / m) * g_v
 
     @ti.kernel
     def _objective(self, src: ti.i32, g: ti.i32) -> ti.types.vector(2, float):
@@ -286,7 +352,9 @@ class ForecastContact:
                 self.objective_ratios.append(after / before)
 
     def apply_grad(self, src: int, g: int, s: int, dt: float) -> None:
-        self._forecast.grad(src, g, s, dt)
+        self._scatter_adjoint(src, g)
+        self._residual.grad(src, g, s, dt)
+        self._gather_adjoint(src, g)
 
     def zero_grad(self) -> None:
         for fld in (self.v_init, self.residual, self.correction):

@@ -1,7 +1,8 @@
 """The MPM engine adapter: hooks for the contact models and the engine contract (``cosim.engines.contract``).
 
-Gradients come from Taichi's reverse-mode autodiff (each substep's kernels'
-``.grad()`` in reverse order). States between macro steps are kept by the tape on
+Gradients come from each substep's kernels' adjoints in reverse order: hand-written for
+the particle-grid transfers (``cosim.engines.mpm_adjoint``), Taichi's reverse-mode
+autodiff (``.grad()``) for the rest. States between macro steps are kept by the tape on
 the host (a record holds the state before its step), and ``vjp`` recomputes the
 substeps of the step it differentiates unless they are still resident from the
 forward pass. Memory is O(S N + K (N + grid)), never O(S K N).
@@ -17,7 +18,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import taichi as ti
 
-from cosim.engines.mpm_kernels import STATE_KEYS, MPMConfig, MPMKernels, ParticleBody
+from cosim.engines.mpm_adjoint import MPMAdjointKernels
+from cosim.engines.mpm_kernels import STATE_KEYS, MPMConfig, ParticleBody
 
 __all__ = ["STATE_KEYS", "MPMConfig", "MPMEngine", "MPMRecord", "ParticleBody"]
 
@@ -47,7 +49,7 @@ def _nbytes(value) -> int:
 
 
 @ti.data_oriented
-class MPMEngine(MPMKernels):
+class MPMEngine(MPMAdjointKernels):
     """The soft-body engine ("mpm"): ``state`` / ``set_state`` / ``step`` / ``vjp`` / ``parameters``."""
 
     name = "mpm"
@@ -68,7 +70,8 @@ class MPMEngine(MPMKernels):
 
         The hook reads the velocity upstream of it (``upstream.velocity(g, I)``: the engine's
         ``grid_v`` or the previous grid hook's output) and never writes it in place (the
-        adjoint needs the input); G2P gathers from the last hook's ``@ti.func velocity(g, I)``.
+        adjoint needs the input); G2P gathers from the last hook's ``@ti.func velocity(g, I)`` and
+        scatters its adjoint through the hook's ``@ti.func velocity_grad(g, I, g_v)``.
         Fields listed in ``hook.scratch`` (grid-shaped vectors) are zeroed with the grid at
         the start of each substep. Methods: ``apply(src, g, s, dt)`` for substep s of the
         macro step, particles in slot src, grid copy g; ``apply_grad(src, g, s, dt)``;

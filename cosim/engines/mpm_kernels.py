@@ -7,8 +7,8 @@ stresses [Pa], impulses [N s]. The domain is the box [0, cells * dx]^d.
 Particle state lives in *slots*: ``x[slot, p]`` etc. A forward-only engine
 uses two slots (ping-pong) and one grid. An engine built with ``requires_grad``
 keeps ``substeps + 1`` slots and one grid (and stress scratch) per substep, so
-one macro step is all resident for Taichi's reverse-mode autodiff and the
-adjoint never re-runs P2G.
+one macro step is all resident for the adjoint (``cosim.engines.mpm_adjoint``),
+which never re-runs P2G.
 
 One substep, split into the phases a coupler drives (see DESIGN.md):
 
@@ -134,7 +134,8 @@ class MPMKernels:
         self.particle_hooks: list = []  # contact models adding momentum in P2G
         self.substep_preparers: list = []  # boundary sources' before_substep(src, s), run on the host
         self.substep_preparer_grads: list = []  # their before_substep_grad(src, s), if differentiable
-        self._grid_out = self  # what G2P gathers velocities from (``velocity(g, I)``): the last grid hook
+        # what G2P gathers velocities from (``velocity(g, I)``, adjoint ``velocity_grad``): the last grid hook
+        self._grid_out = self
         self._slot = 0
         self._token = 0
         self._resident = -1  # token of the step whose substeps fill the slots
@@ -211,7 +212,7 @@ class MPMKernels:
         self, serial: ti.template(), b: ti.i32, start: ti.i32, end: ti.i32, src: ti.i32, g: ti.i32, control_share: float
     ):
         """Scatter mass and momentum. ``serial``: one thread, non-atomic adds (faster than
-        atomics on CPUs); its adjoint is a gather and runs with ``serial=False``."""
+        atomics on CPUs); its adjoint (``cosim.engines.mpm_adjoint``) is a parallel gather."""
         ti.loop_config(serialize=serial)
         for p in range(start, end):
             m_p = self.p_mass[b]
@@ -253,14 +254,8 @@ class MPMKernels:
                 self.grid_m[g, I] = 0.0
 
     @ti.kernel
-    def _g2p(self, serial: ti.template(), src: ti.i32, dst: ti.i32, g: ti.i32, source: ti.template()):
-        """Gather velocity and affine field from the grid into slot ``dst``.
-
-        A parallel gather; its adjoint scatters onto the grid, so it runs with
-        ``serial=True`` (non-atomic adds), while the costly per-particle update
-        below keeps a parallel adjoint.
-        """
-        ti.loop_config(serialize=serial)
+    def _g2p(self, src: ti.i32, dst: ti.i32, g: ti.i32, source: ti.template()):
+        """Gather velocity and affine field from the grid (``source.velocity``) into slot ``dst``."""
         for p in range(self.n_particles):
             base, fx, w = self.stencil(self.x[src, p])
             new_v = ti.Vector.zero(float, self.dim)
@@ -366,7 +361,7 @@ class MPMKernels:
 
     def post_coupling(self, src: int, dst: int, dt: float) -> None:
         """Gather from the grid (G2P), advect and update deformation per body."""
-        self._g2p(False, src, dst, self._grid_index(src), self._grid_out)
+        self._g2p(src, dst, self._grid_index(src), self._grid_out)
         for b, (mat, (lo, hi)) in enumerate(zip(self.materials, self.ranges)):
             self._advect(mat, b, lo, hi, src, dst, dt)
 
@@ -374,21 +369,3 @@ class MPMKernels:
         self.pre_coupling(src, s, dt, control_share)
         self.coupling(src, s, dt)
         self.post_coupling(src, dst, dt)
-
-    def _substep_grad(self, s: int, dt: float, control_share: float) -> None:
-        """Adjoint of substep s (slots s -> s + 1); its grid and stress copies are still held."""
-        for b in reversed(range(len(self.bodies))):
-            lo, hi = self.ranges[b]
-            self._advect.grad(self.materials[b], b, lo, hi, s, s + 1, dt)
-        self._g2p.grad(self._serial, s, s + 1, s, self._grid_out)
-        for hook in reversed(self.grid_hooks):
-            hook.apply_grad(s, s, s, dt)
-        self._grid_update.grad(s, dt, self._mass_floor())
-        for b in reversed(range(len(self.bodies))):
-            lo, hi = self.ranges[b]
-            self._p2g.grad(False, b, lo, hi, s, s, control_share)
-            self._stress.grad(self.materials[b], b, lo, hi, s, s, dt)
-        for hook in reversed(self.particle_hooks):
-            hook.apply_grad(s, s, s, dt)
-        for prepare_grad in reversed(self.substep_preparer_grads):
-            prepare_grad(s, s)

@@ -1,0 +1,118 @@
+"""Hand-written adjoints of the MPM's particle-grid transfers (P2G scatter, G2P gather).
+
+Taichi's reverse-mode autodiff of the transfer kernels unrolls the 3^d stencil
+into a large reverse program: in 3D the first backward substep compiled for
+about two minutes, almost all of it in these kernels (measured). The adjoints
+here are written out instead, with the same stencil loop as the forward, so they
+compile like forward kernels. The per-particle stress, the grid update and the
+return mapping keep Taichi's autodiff (no stencil there).
+
+Notation for one particle at x with stencil nodes i: weights w_i(x) (products of
+per-axis quadratic B-splines), offsets dpos_i = (i - x / dx) dx. Both depend on x:
+grad w_i is below (``weight_gradient``), d dpos_i / dx = -I. The base node is
+piecewise constant in x and carries no gradient.
+"""
+
+import taichi as ti
+
+from cosim.engines.mpm_kernels import MPMKernels
+
+
+@ti.data_oriented
+class MPMAdjointKernels(MPMKernels):
+    """The MPM kernels plus the adjoint of one substep (``_substep_grad``)."""
+
+    @ti.func
+    def stencil_slopes(self, fx):
+        """Per-axis derivatives d w / d fx of the three quadratic B-spline weights (see ``stencil``)."""
+        return [fx - 1.5, -2.0 * (fx - 1.0), fx - 0.5]
+
+    @ti.func
+    def weight_gradient(self, w: ti.template(), slopes: ti.template(), offset: ti.template()):
+        """Gradient [1/m] of stencil node ``offset``'s weight with respect to the particle position."""
+        grad = ti.Vector.zero(float, self.dim)
+        for k in ti.static(range(self.dim)):
+            factor = self.inv_dx * slopes[offset[k]][k]
+            for j in ti.static(range(self.dim)):
+                if ti.static(j != k):
+                    factor *= w[offset[j]][j]
+            grad[k] = factor
+        return grad
+
+    @ti.kernel
+    def _p2g_adjoint(self, b: ti.i32, start: ti.i32, end: ti.i32, src: ti.i32, g: ti.i32, control_share: float):
+        """Adjoint of ``_p2g``: a parallel gather of the grid momentum and mass adjoints into the
+        particle's velocity, affine momentum, position, control and particle-hook momenta."""
+        for p in range(start, end):
+            m_p = self.p_mass[b]
+            base, fx, w = self.stencil(self.x[src, p])
+            slopes = self.stencil_slopes(fx)
+            affine = self.affine[g, p]
+            mom = m_p * self.v[src, p]
+            if ti.static(self.cfg.has_controls):
+                mom += control_share * self.control[p]
+            for hook in ti.static(self.particle_hooks):
+                mom += hook.output[g, p]
+            g_mom = ti.Vector.zero(float, self.dim)
+            g_affine = ti.Matrix.zero(float, self.dim, self.dim)
+            g_x = ti.Vector.zero(float, self.dim)
+            for offset in ti.static(ti.grouped(ti.ndrange(*([3] * self.dim)))):
+                dpos = (offset - fx) * self.dx
+                weight = self.stencil_weight(w, offset)
+                g_node = self.grid_mom.grad[g, base + offset]
+                g_mass = self.grid_m.grad[g, base + offset]
+                g_mom += weight * g_node
+                g_affine += weight * g_node.outer_product(dpos)
+                g_x += self.weight_gradient(w, slopes, offset) * (g_node.dot(mom + affine @ dpos) + m_p * g_mass)
+                g_x -= weight * (affine.transpose() @ g_node)
+            self.v.grad[src, p] += m_p * g_mom
+            if ti.static(self.cfg.has_controls):
+                self.control.grad[p] += control_share * g_mom
+            for hook in ti.static(self.particle_hooks):
+                hook.output.grad[g, p] += g_mom
+            self.affine.grad[g, p] += g_affine
+            self.x.grad[src, p] += g_x
+
+    @ti.func
+    def velocity_grad(self, g, I, g_v):
+        """Adjoint of ``velocity(g, I)``: add g_v to the adjoint of the grid velocity it read."""
+        self.grid_v.grad[g, I] += g_v
+
+    @ti.kernel
+    def _g2p_adjoint(self, serial: ti.template(), src: ti.i32, dst: ti.i32, g: ti.i32, source: ti.template()):
+        """Adjoint of ``_g2p``: scatter the new velocity's and affine field's adjoints onto the
+        adjoint of the gathered grid velocity (``source.velocity_grad``) and into the position.
+        ``serial``: one thread with non-atomic adds (faster than atomics on CPUs)."""
+        ti.loop_config(serialize=serial)
+        for p in range(self.n_particles):
+            base, fx, w = self.stencil(self.x[src, p])
+            slopes = self.stencil_slopes(fx)
+            g_v = self.v.grad[dst, p]
+            g_C = (4.0 * self.inv_dx) * self.C.grad[dst, p]
+            g_x = ti.Vector.zero(float, self.dim)
+            for offset in ti.static(ti.grouped(ti.ndrange(*([3] * self.dim)))):
+                dpos = offset - fx
+                weight = self.stencil_weight(w, offset)
+                node_v = source.velocity(g, base + offset)
+                source.velocity_grad(g, base + offset, weight * (g_v + g_C @ dpos))
+                g_x += self.weight_gradient(w, slopes, offset) * (node_v.dot(g_v + g_C @ dpos))
+                g_x -= (weight * self.inv_dx) * (g_C.transpose() @ node_v)
+            self.x.grad[src, p] += g_x
+
+    def _substep_grad(self, s: int, dt: float, control_share: float) -> None:
+        """Adjoint of substep s (slots s -> s + 1); its grid and stress copies are still held."""
+        for b in reversed(range(len(self.bodies))):
+            lo, hi = self.ranges[b]
+            self._advect.grad(self.materials[b], b, lo, hi, s, s + 1, dt)
+        self._g2p_adjoint(self._serial, s, s + 1, s, self._grid_out)
+        for hook in reversed(self.grid_hooks):
+            hook.apply_grad(s, s, s, dt)
+        self._grid_update.grad(s, dt, self._mass_floor())
+        for b in reversed(range(len(self.bodies))):
+            lo, hi = self.ranges[b]
+            self._p2g_adjoint(b, lo, hi, s, s, control_share)
+            self._stress.grad(self.materials[b], b, lo, hi, s, s, dt)
+        for hook in reversed(self.particle_hooks):
+            hook.apply_grad(s, s, s, dt)
+        for prepare_grad in reversed(self.substep_preparer_grads):
+            prepare_grad(s, s)
