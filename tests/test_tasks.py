@@ -1,10 +1,9 @@
 """The paper's optimisation tasks, each from its plain initial guess: `cosim optimize` lowers the loss at
 every one of 3 iterations on a shortened rollout (the full runs are in the README's task table).
 
-Only pull_door (2D) and pour_water (3D) run here: every 3D task compiles its own adjoint kernels, about
-2 minutes per task on a CI core (measured: squeeze_plasticine's first adjoint step 120-130 s with Taichi's
-offline cache empty, 95% of it in the reverse-mode P2G, G2P and forecast-contact kernels), and the
-suite must stay under 10 minutes. The other four join when those kernels compile faster."""
+The six tasks are split over three files (this one, test_tasks_manipulation.py, test_tasks_cloth.py) so
+that the suite's two workers share them: each 3D task compiles its kernels and their adjoints for about
+a minute with Taichi's cache empty."""
 
 from __future__ import annotations
 

@@ -268,15 +268,15 @@ class ForecastContact:
         e = self.engine
         for p in range(e.n_particles):
             if self.constrained[g, p]:
-                base, fx, w = e.stencil(e.x[src, p])
-                slopes = e.stencil_slopes(fx)
+                base, fx, _w = e.stencil(e.x[src, p])
                 r = self.residual[g, p]
                 g_r = ti.Vector.zero(float, e.dim)
                 g_x = ti.Vector.zero(float, e.dim)
-                for offset in ti.static(ti.grouped(ti.ndrange(*([3] * e.dim)))):
+                for offset in ti.grouped(ti.ndrange(*([3] * e.dim))):
+                    weight, grad_w = e.node_weight(fx, offset)
                     g_corr = self.correction.grad[g, base + offset]
-                    g_r += e.stencil_weight(w, offset) * g_corr
-                    g_x += e.weight_gradient(w, slopes, offset) * g_corr.dot(r)
+                    g_r += weight * g_corr
+                    g_x += grad_w * g_corr.dot(r)
                 self.residual.grad[g, p] += e.mass_of(p) * g_r
                 e.x.grad[src, p] += e.mass_of(p) * g_x
 
@@ -287,14 +287,14 @@ class ForecastContact:
         e = self.engine
         for p in range(e.n_particles):
             if self.constrained[g, p]:
-                base, fx, w = e.stencil(e.x[src, p])
-                slopes = e.stencil_slopes(fx)
+                base, fx, _w = e.stencil(e.x[src, p])
                 g_v_init = self.v_init.grad[g, p]
                 g_x = ti.Vector.zero(float, e.dim)
-                for offset in ti.static(ti.grouped(ti.ndrange(*([3] * e.dim)))):
+                for offset in ti.grouped(ti.ndrange(*([3] * e.dim))):
                     node = base + offset
-                    g_x += e.weight_gradient(w, slopes, offset) * g_v_init.dot(self.upstream.velocity(g, node))
-                    self.upstream.velocity_grad(g, node, e.stencil_weight(w, offset) * g_v_init)
+                    weight, grad_w = e.node_weight(fx, offset)
+                    g_x += grad_w * g_v_init.dot(self.upstream.velocity(g, node))
+                    self.upstream.velocity_grad(g, node, weight * g_v_init)
                 e.x.grad[src, p] += g_x
 
     @ti.func

@@ -9,7 +9,7 @@ return mapping keep Taichi's autodiff (no stencil there).
 
 Notation for one particle at x with stencil nodes i: weights w_i(x) (products of
 per-axis quadratic B-splines), offsets dpos_i = (i - x / dx) dx. Both depend on x:
-grad w_i is below (``weight_gradient``), d dpos_i / dx = -I. The base node is
+grad w_i is below (``node_weight``), d dpos_i / dx = -I. The base node is
 piecewise constant in x and carries no gradient.
 """
 
@@ -23,21 +23,29 @@ class MPMAdjointKernels(MPMKernels):
     """The MPM kernels plus the adjoint of one substep (``_substep_grad``)."""
 
     @ti.func
-    def stencil_slopes(self, fx):
-        """Per-axis derivatives d w / d fx of the three quadratic B-spline weights (see ``stencil``)."""
-        return [fx - 1.5, -2.0 * (fx - 1.0), fx - 0.5]
-
-    @ti.func
-    def weight_gradient(self, w: ti.template(), slopes: ti.template(), offset: ti.template()):
-        """Gradient [1/m] of stencil node ``offset``'s weight with respect to the particle position."""
+    def node_weight(self, fx, offset):
+        """Weight of stencil node ``offset`` for a particle at ``fx`` (cells from the base node) and its
+        gradient [1/m] with respect to the particle position. ``offset`` may be a run-time value, so
+        the adjoints loop over the 3^d nodes without unrolling them (unrolled, the 3D adjoints took
+        5 s each to compile, measured). Per axis, at distance r = |fx - offset| [cells] from the
+        node, the quadratic B-spline is 3/4 - r^2 (r < 1/2) or (3/2 - r)^2 / 2 (the same weights as
+        ``stencil``)."""
+        dist = fx - ti.cast(offset, float)
+        r = ti.abs(dist)
+        near = r < 0.5
+        axis_w = ti.select(near, 0.75 - dist * dist, 0.5 * (1.5 - r) ** 2)
+        axis_slope = ti.select(near, -2.0 * dist, (r - 1.5) * dist / ti.max(r, 0.5))
+        weight = 1.0
+        for k in ti.static(range(self.dim)):
+            weight *= axis_w[k]
         grad = ti.Vector.zero(float, self.dim)
         for k in ti.static(range(self.dim)):
-            factor = self.inv_dx * slopes[offset[k]][k]
+            factor = self.inv_dx * axis_slope[k]
             for j in ti.static(range(self.dim)):
                 if ti.static(j != k):
-                    factor *= w[offset[j]][j]
+                    factor *= axis_w[j]
             grad[k] = factor
-        return grad
+        return weight, grad
 
     @ti.kernel
     def _p2g_adjoint(self, b: ti.i32, start: ti.i32, end: ti.i32, src: ti.i32, g: ti.i32, control_share: float):
@@ -45,8 +53,7 @@ class MPMAdjointKernels(MPMKernels):
         particle's velocity, affine momentum, position, control and particle-hook momenta."""
         for p in range(start, end):
             m_p = self.p_mass[b]
-            base, fx, w = self.stencil(self.x[src, p])
-            slopes = self.stencil_slopes(fx)
+            base, fx, _w = self.stencil(self.x[src, p])
             affine = self.affine[g, p]
             mom = m_p * self.v[src, p]
             if ti.static(self.cfg.has_controls):
@@ -56,14 +63,14 @@ class MPMAdjointKernels(MPMKernels):
             g_mom = ti.Vector.zero(float, self.dim)
             g_affine = ti.Matrix.zero(float, self.dim, self.dim)
             g_x = ti.Vector.zero(float, self.dim)
-            for offset in ti.static(ti.grouped(ti.ndrange(*([3] * self.dim)))):
+            for offset in ti.grouped(ti.ndrange(*([3] * self.dim))):
                 dpos = (offset - fx) * self.dx
-                weight = self.stencil_weight(w, offset)
+                weight, grad_w = self.node_weight(fx, offset)
                 g_node = self.grid_mom.grad[g, base + offset]
                 g_mass = self.grid_m.grad[g, base + offset]
                 g_mom += weight * g_node
                 g_affine += weight * g_node.outer_product(dpos)
-                g_x += self.weight_gradient(w, slopes, offset) * (g_node.dot(mom + affine @ dpos) + m_p * g_mass)
+                g_x += grad_w * (g_node.dot(mom + affine @ dpos) + m_p * g_mass)
                 g_x -= weight * (affine.transpose() @ g_node)
             self.v.grad[src, p] += m_p * g_mom
             if ti.static(self.cfg.has_controls):
@@ -80,24 +87,35 @@ class MPMAdjointKernels(MPMKernels):
 
     @ti.kernel
     def _g2p_adjoint(self, serial: ti.template(), src: ti.i32, dst: ti.i32, g: ti.i32, source: ti.template()):
-        """Adjoint of ``_g2p``: scatter the new velocity's and affine field's adjoints onto the
-        adjoint of the gathered grid velocity (``source.velocity_grad``) and into the position.
-        ``serial``: one thread with non-atomic adds (faster than atomics on CPUs)."""
+        """Adjoint of ``_g2p``: scatter the new velocity's and affine field's adjoints onto
+        ``gathered_grad`` (the adjoint of the velocities G2P read; ``_gathered_grad_to_source``
+        hands it on) and gather into the position. ``serial``: one thread with non-atomic adds
+        (faster than atomics on CPUs)."""
         ti.loop_config(serialize=serial)
         for p in range(self.n_particles):
-            base, fx, w = self.stencil(self.x[src, p])
-            slopes = self.stencil_slopes(fx)
+            base, fx, _w = self.stencil(self.x[src, p])
             g_v = self.v.grad[dst, p]
             g_C = (4.0 * self.inv_dx) * self.C.grad[dst, p]
             g_x = ti.Vector.zero(float, self.dim)
-            for offset in ti.static(ti.grouped(ti.ndrange(*([3] * self.dim)))):
+            for offset in ti.grouped(ti.ndrange(*([3] * self.dim))):
                 dpos = offset - fx
-                weight = self.stencil_weight(w, offset)
+                weight, grad_w = self.node_weight(fx, offset)
                 node_v = source.velocity(g, base + offset)
-                source.velocity_grad(g, base + offset, weight * (g_v + g_C @ dpos))
-                g_x += self.weight_gradient(w, slopes, offset) * (node_v.dot(g_v + g_C @ dpos))
+                g_node = g_v + g_C @ dpos
+                self.gathered_grad[base + offset] += weight * g_node
+                g_x += grad_w * node_v.dot(g_node)
                 g_x -= (weight * self.inv_dx) * (g_C.transpose() @ node_v)
             self.x.grad[src, p] += g_x
+
+    @ti.kernel
+    def _gathered_grad_to_source(self, g: ti.i32, source: ti.template()):
+        """Hand the adjoint of the gathered velocities to their source (``velocity_grad``: the
+        engine's grid velocity or the last grid hook, which passes it upstream) and clear it.
+        A grid pass of its own: inside the G2P adjoint's stencil loop, the hooks' adjoint chain
+        took 10 s to compile in 3D (measured), this pass 1 s."""
+        for I in ti.grouped(ti.ndrange(*self.nodes)):
+            source.velocity_grad(g, I, self.gathered_grad[I])
+            self.gathered_grad[I] = ti.Vector.zero(float, self.dim)
 
     def _substep_grad(self, s: int, dt: float, control_share: float) -> None:
         """Adjoint of substep s (slots s -> s + 1); its grid and stress copies are still held."""
@@ -105,6 +123,7 @@ class MPMAdjointKernels(MPMKernels):
             lo, hi = self.ranges[b]
             self._advect.grad(self.materials[b], b, lo, hi, s, s + 1, dt)
         self._g2p_adjoint(self._serial, s, s + 1, s, self._grid_out)
+        self._gathered_grad_to_source(s, self._grid_out)
         for hook in reversed(self.grid_hooks):
             hook.apply_grad(s, s, s, dt)
         self._grid_update.grad(s, dt, self._mass_floor())

@@ -116,6 +116,8 @@ class MPMKernels:
         self.grid_v = ti.Vector.field(d, float, shape=(self.n_grids, *self.nodes), needs_grad=grad)
         self.gravity = ti.Vector([float(g) for g in config.gravity])
         self.affine = ti.Matrix.field(d, d, float, shape=(self.n_grids, n), needs_grad=grad)
+        # the adjoint of the grid velocities one G2P read (gradients only; see ``mpm_adjoint``)
+        self.gathered_grad = ti.Vector.field(d, float, shape=self.nodes) if grad else None
         self.control = None
         if config.has_controls:
             self.control = ti.Vector.field(d, float, shape=n, needs_grad=grad)
