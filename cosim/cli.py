@@ -51,7 +51,9 @@ def cmd_run(args) -> int:
             raise InputError(f"--contact {args.contact}: the scene has no rigid bodies (no 'rigid:' section)")
         scene.contact.model = args.contact
     out = Path(args.out or f"out/{scene.name}")
-    m = run_scene(scene, out, steps=args.steps, progress=not args.quiet, save_target=args.save_target)
+    m = run_scene(
+        scene, out, steps=args.steps, progress=not args.quiet, preview=not args.no_preview, save_target=args.save_target
+    )
     print(
         f"{scene.name}: {m['steps']} steps, {m['substeps_total']} substeps, {m['particles']} particles, "
         f"{m['wall_time_s']:.2f} s ({m['particle_substeps_per_s'] / 1e6:.2f} M particle-substeps/s), "
@@ -179,7 +181,7 @@ def cmd_optimize(args) -> int:
     (out / "optimization.json").write_text(json.dumps(summary, indent=2))
     recorder = Recorder(sim)
     obj.rollout(result.params, on_step=lambda n: recorder(n) if n == 0 or recorder.wants(n) else None)
-    preview = recorder.write(out)
+    preview = recorder.write(out, preview=not args.no_preview)
     written = ["params.npz", "optimization.json", "optimization.csv", "loss.png", "trajectory.npz"]
     written += ["checkpoint.npz"] if method != "lbfgs" else []  # scipy's L-BFGS-B is not checkpointed
     print("wrote " + ", ".join(f"{out}/{name}" for name in written + ([preview] if preview else [])))
@@ -281,6 +283,7 @@ def make_parser() -> argparse.ArgumentParser:
     r.add_argument("--out", help="output folder (default: out/SCENE_NAME)")
     r.add_argument("--steps", type=positive_int, help="macro steps (default: the scene's)")
     r.add_argument("--quiet", action="store_true", help="no progress bar")
+    r.add_argument("--no-preview", action="store_true", help="skip the preview (trajectory and metrics only)")
     r.add_argument("--contact", choices=["grid", "particle", "forecast"], help="override the scene's contact model")
     r.add_argument(
         "--save-target", action="store_true", help="also write OUT/target.npz: final positions, a chamfer target"
@@ -311,6 +314,7 @@ def make_parser() -> argparse.ArgumentParser:
         "--resume", action="store_true", help="continue from OUT/checkpoint.npz (saved after every iteration)"
     )
     o.add_argument("--quiet", action="store_true", help="no progress bar")
+    o.add_argument("--no-preview", action="store_true", help="skip the final rollout's preview")
     o.set_defaults(func=cmd_optimize)
 
     b = sub.add_parser("bench", help="benchmarks: throughput, backward/forward ratio, memory")

@@ -161,10 +161,10 @@ def test_render_rerenders_a_trajectory_and_rejects_a_missing_one(tmp_path):
 
 
 def test_run_contact_override_reports_particles_inside_rigid_bodies(tmp_path):
-    res = run_cli(
-        "run", "shake_container_2d", "--contact", "forecast", "--steps", "3", "--out", str(tmp_path), "--quiet"
-    )
+    args = ("shake_container_2d", "--contact", "forecast", "--steps", "3", "--out", str(tmp_path), "--quiet")
+    res = run_cli("run", *args, "--no-preview")
     assert res.returncode == 0, res.stderr
+    assert (tmp_path / "trajectory.npz").is_file() and not (tmp_path / "preview.gif").exists()
     assert "contact model forecast: particles inside rigid bodies at the end: container:" in res.stdout
     metrics = json.loads((tmp_path / "metrics.json").read_text())
     assert metrics["contact_model"] == "forecast"
