@@ -11,6 +11,7 @@ TASKS = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("task", sorted(TASKS))
 def test_three_iterations_lower_the_loss(task, tmp_path):
     check_task_improves(task, *TASKS[task], tmp_path)
