@@ -23,9 +23,12 @@ _optimize = os.environ.get("COSIM_OPTIMIZE_KERNELS", "") == "1"
 
 def optimize_kernels(enabled: bool = True) -> None:
     """Compile the kernels of the next Taichi start-up with (True) or without advanced optimisation
-    (see the module docstring); a running Taichi re-initialises at the next ``ensure_taichi``."""
+    (see the module docstring); a running Taichi re-initialises at the next ``ensure_taichi``.
+    Child processes inherit the choice (the benchmarks run each configuration in its own process;
+    before, theirs compiled without it)."""
     global _optimize
     _optimize = bool(enabled)
+    os.environ["COSIM_OPTIMIZE_KERNELS"] = "1" if _optimize else ""
 
 
 def taichi_precision(precision: str):

@@ -175,3 +175,19 @@ def test_run_contact_override_reports_particles_inside_rigid_bodies(tmp_path):
     assert held == metrics["particles"] and inside == 0
     bad = run_cli("run", "elastic_bounce_2d", "--contact", "grid", "--steps", "2", "--out", str(tmp_path / "b"))
     assert bad.returncode == 2 and "no rigid bodies" in bad.stderr
+
+
+def test_kernel_optimisation_choice_reaches_child_processes():
+    """`cosim bench` turns Taichi's advanced optimisation on and runs each configuration in a child
+    process, which must compile the same way (before, the children silently compiled without it)."""
+    from cosim import runtime
+
+    before = runtime._optimize
+    probe = [sys.executable, "-c", "from cosim import runtime; print(runtime._optimize)"]
+    try:
+        for enabled in (True, False):
+            runtime.optimize_kernels(enabled)
+            res = subprocess.run(probe, capture_output=True, text=True, check=True)
+            assert res.stdout.strip() == str(enabled)
+    finally:
+        runtime.optimize_kernels(before)
