@@ -269,11 +269,12 @@ class ForecastContact:
         for p in range(e.n_particles):
             if self.constrained[g, p]:
                 base, fx, _w = e.stencil(e.x[src, p])
+                weights, slopes = e.axis_weights(fx)
                 r = self.residual[g, p]
                 g_r = ti.Vector.zero(float, e.dim)
                 g_x = ti.Vector.zero(float, e.dim)
                 for offset in ti.grouped(ti.ndrange(*([3] * e.dim))):
-                    weight, grad_w = e.node_weight(fx, offset)
+                    weight, grad_w = e.node_weight(weights, slopes, offset)
                     g_corr = self.correction.grad[g, base + offset]
                     g_r += weight * g_corr
                     g_x += grad_w * g_corr.dot(r)
@@ -288,11 +289,12 @@ class ForecastContact:
         for p in range(e.n_particles):
             if self.constrained[g, p]:
                 base, fx, _w = e.stencil(e.x[src, p])
+                weights, slopes = e.axis_weights(fx)
                 g_v_init = self.v_init.grad[g, p]
                 g_x = ti.Vector.zero(float, e.dim)
                 for offset in ti.grouped(ti.ndrange(*([3] * e.dim))):
                     node = base + offset
-                    weight, grad_w = e.node_weight(fx, offset)
+                    weight, grad_w = e.node_weight(weights, slopes, offset)
                     g_x += grad_w * g_v_init.dot(self.upstream.velocity(g, node))
                     self.upstream.velocity_grad(g, node, weight * g_v_init)
                 e.x.grad[src, p] += g_x

@@ -23,27 +23,27 @@ class MPMAdjointKernels(MPMKernels):
     """The MPM kernels plus the adjoint of one substep (``_substep_grad``)."""
 
     @ti.func
-    def node_weight(self, fx, offset):
-        """Weight of stencil node ``offset`` for a particle at ``fx`` (cells from the base node) and its
-        gradient [1/m] with respect to the particle position. ``offset`` may be a run-time value, so
-        the adjoints loop over the 3^d nodes without unrolling them (unrolled, the 3D adjoints took
-        5 s each to compile, measured). Per axis, at distance r = |fx - offset| [cells] from the
-        node, the quadratic B-spline is 3/4 - r^2 (r < 1/2) or (3/2 - r)^2 / 2 (the same weights as
-        ``stencil``)."""
-        dist = fx - ti.cast(offset, float)
-        r = ti.abs(dist)
-        near = r < 0.5
-        axis_w = ti.select(near, 0.75 - dist * dist, 0.5 * (1.5 - r) ** 2)
-        axis_slope = ti.select(near, -2.0 * dist, (r - 1.5) * dist / ti.max(r, 0.5))
+    def axis_weights(self, fx):
+        """Per-axis quadratic B-spline weights of the three stencil nodes (the same as ``stencil``'s) and
+        their derivatives d w / d fx, as 3 x d matrices (row: the node's offset, column: the axis)."""
+        weights = ti.Matrix.rows([0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2])
+        slopes = ti.Matrix.rows([fx - 1.5, -2.0 * (fx - 1.0), fx - 0.5])
+        return weights, slopes
+
+    @ti.func
+    def node_weight(self, weights, slopes, offset):
+        """Weight of stencil node ``offset`` and its gradient [1/m] with respect to the particle position,
+        from ``axis_weights``. ``offset`` may be a run-time value, so the adjoints loop over the 3^d nodes
+        without unrolling them (unrolled, the 3D adjoints took 5 s each to compile, measured)."""
         weight = 1.0
         for k in ti.static(range(self.dim)):
-            weight *= axis_w[k]
+            weight *= weights[offset[k], k]
         grad = ti.Vector.zero(float, self.dim)
         for k in ti.static(range(self.dim)):
-            factor = self.inv_dx * axis_slope[k]
+            factor = self.inv_dx * slopes[offset[k], k]
             for j in ti.static(range(self.dim)):
                 if ti.static(j != k):
-                    factor *= axis_w[j]
+                    factor *= weights[offset[j], j]
             grad[k] = factor
         return weight, grad
 
@@ -54,6 +54,7 @@ class MPMAdjointKernels(MPMKernels):
         for p in range(start, end):
             m_p = self.p_mass[b]
             base, fx, _w = self.stencil(self.x[src, p])
+            weights, slopes = self.axis_weights(fx)
             affine = self.affine[g, p]
             mom = m_p * self.v[src, p]
             if ti.static(self.cfg.has_controls):
@@ -65,7 +66,7 @@ class MPMAdjointKernels(MPMKernels):
             g_x = ti.Vector.zero(float, self.dim)
             for offset in ti.grouped(ti.ndrange(*([3] * self.dim))):
                 dpos = (offset - fx) * self.dx
-                weight, grad_w = self.node_weight(fx, offset)
+                weight, grad_w = self.node_weight(weights, slopes, offset)
                 g_node = self.grid_mom.grad[g, base + offset]
                 g_mass = self.grid_m.grad[g, base + offset]
                 g_mom += weight * g_node
@@ -94,12 +95,13 @@ class MPMAdjointKernels(MPMKernels):
         ti.loop_config(serialize=serial)
         for p in range(self.n_particles):
             base, fx, _w = self.stencil(self.x[src, p])
+            weights, slopes = self.axis_weights(fx)
             g_v = self.v.grad[dst, p]
             g_C = (4.0 * self.inv_dx) * self.C.grad[dst, p]
             g_x = ti.Vector.zero(float, self.dim)
             for offset in ti.grouped(ti.ndrange(*([3] * self.dim))):
                 dpos = offset - fx
-                weight, grad_w = self.node_weight(fx, offset)
+                weight, grad_w = self.node_weight(weights, slopes, offset)
                 node_v = source.velocity(g, base + offset)
                 g_node = g_v + g_C @ dpos
                 self.gathered_grad[base + offset] += weight * g_node
