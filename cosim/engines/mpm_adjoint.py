@@ -56,11 +56,7 @@ class MPMAdjointKernels(MPMKernels):
             base, fx, _w = self.stencil(self.x[src, p])
             weights, slopes = self.axis_weights(fx)
             affine = self.affine[g, p]
-            mom = m_p * self.v[src, p]
-            if ti.static(self.cfg.has_controls):
-                mom += control_share * self.control[p]
-            for hook in ti.static(self.particle_hooks):
-                mom += hook.output[g, p]
+            mom = self.particle_momentum(src, g, p, m_p, control_share)
             g_mom = ti.Vector.zero(float, self.dim)
             g_affine = ti.Matrix.zero(float, self.dim, self.dim)
             g_x = ti.Vector.zero(float, self.dim)

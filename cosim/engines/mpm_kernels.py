@@ -209,6 +209,17 @@ class MPMKernels:
             tau = mat.kirchhoff(self.F[src, p], self.C[src, p], mu, lam, self.viscosity[b])
             self.affine[g, p] = (-dt * vol * 4.0 * self.inv_dx * self.inv_dx) * tau + m_p * self.C[src, p]
 
+    @ti.func
+    def particle_momentum(self, src, g, p, m_p, control_share):
+        """Momentum [N s] particle p scatters in P2G besides its affine part: m_p v, its share of the
+        control impulse and the particle hooks' momenta."""
+        mom = m_p * self.v[src, p]
+        if ti.static(self.cfg.has_controls):
+            mom += control_share * self.control[p]
+        for hook in ti.static(self.particle_hooks):
+            mom += hook.output[g, p]
+        return mom
+
     @ti.kernel
     def _p2g(
         self, serial: ti.template(), b: ti.i32, start: ti.i32, end: ti.i32, src: ti.i32, g: ti.i32, control_share: float
@@ -220,11 +231,7 @@ class MPMKernels:
             m_p = self.p_mass[b]
             base, fx, w = self.stencil(self.x[src, p])
             affine = self.affine[g, p]
-            mom = m_p * self.v[src, p]
-            if ti.static(self.cfg.has_controls):
-                mom += control_share * self.control[p]
-            for hook in ti.static(self.particle_hooks):
-                mom += hook.output[g, p]
+            mom = self.particle_momentum(src, g, p, m_p, control_share)
             for offset in ti.static(ti.grouped(ti.ndrange(*([3] * self.dim)))):
                 dpos = (offset - fx) * self.dx
                 weight = self.stencil_weight(w, offset)
