@@ -32,10 +32,26 @@ def resolve_scene(arg: str | None) -> Path:
     return path  # load_scene reports it missing
 
 
-def _load(args, **overrides):
+def _load(args, **defaults):
+    """The scene ``args.scene`` with the command's ``defaults`` for top-level keys (gradcheck's float64),
+    then ``--precision`` / ``--arch`` and the ``--set`` assignments, which win over both."""
     from cosim.scene import load_scene
 
-    return load_scene(resolve_scene(args.scene), overrides or None)
+    assignments = [f"{key}={getattr(args, key)}" for key in ("precision", "arch") if getattr(args, key, None)]
+    assignments += getattr(args, "set", None) or []
+    return load_scene(resolve_scene(args.scene), defaults or None, assignments)
+
+
+def add_scene_options(parser: argparse.ArgumentParser) -> None:
+    """``--set``, ``--precision`` and ``--arch``: change a scene without editing its file."""
+    parser.add_argument(
+        "--set",
+        action="append",
+        metavar="KEY.PATH=VALUE",
+        help="set one scene value (repeatable), e.g. --set mpm.bodies[0].material.E=4e4 --set contact.friction=0.3",
+    )
+    parser.add_argument("--precision", choices=["float32", "float64"], help="override the scene's precision")
+    parser.add_argument("--arch", choices=["cpu", "cuda"], help="override the scene's Taichi arch")
 
 
 def cmd_run(args) -> int:
@@ -97,7 +113,9 @@ def cmd_gradcheck(args) -> int:
     obj = Objective(sim)
     params = obj.initial_params()
     names = obj.select(scene.gradient.params)
-    print(f"gradcheck {scene.name}: {steps} steps x {sim.grad_substeps} substeps, float64, loss {scene.loss.type}")
+    print(
+        f"gradcheck {scene.name}: {steps} steps x {sim.grad_substeps} substeps, {scene.precision}, loss {scene.loss.type}"
+    )
     results = check_gradients(
         obj.evaluate, params, names, obj.natural_scales(), args.directions or scene.gradient.directions
     )
@@ -284,6 +302,7 @@ def make_parser() -> argparse.ArgumentParser:
     r.add_argument("--steps", type=positive_int, help="macro steps (default: the scene's)")
     r.add_argument("--quiet", action="store_true", help="no progress bar")
     r.add_argument("--no-preview", action="store_true", help="skip the preview (trajectory and metrics only)")
+    add_scene_options(r)
     r.add_argument("--contact", choices=["grid", "particle", "forecast"], help="override the scene's contact model")
     r.add_argument(
         "--save-target", action="store_true", help="also write OUT/target.npz: final positions, a chamfer target"
@@ -292,10 +311,12 @@ def make_parser() -> argparse.ArgumentParser:
 
     v = sub.add_parser("validate", help="check a scene file and report its size")
     v.add_argument("scene")
+    add_scene_options(v)
     v.set_defaults(func=cmd_validate)
 
     g = sub.add_parser("gradcheck", help="adjoint vs central finite differences (float64)")
     g.add_argument("scene")
+    add_scene_options(g)
     g.add_argument(
         "--steps", type=positive_int, help="macro steps (default: the scene's gradient.steps, else min(steps, 5))"
     )
@@ -305,6 +326,7 @@ def make_parser() -> argparse.ArgumentParser:
 
     o = sub.add_parser("optimize", help="minimise the scene's loss over its inputs with the adjoint gradient")
     o.add_argument("scene")
+    add_scene_options(o)
     o.add_argument("--iters", type=positive_int, help="iterations (default: optimize.iterations)")
     o.add_argument("--lr", type=positive_float, help="learning rate, a fraction of each parameter's scale")
     o.add_argument("--steps", type=positive_int, help="macro steps of the rollout (default: the scene's)")
@@ -328,6 +350,7 @@ def make_parser() -> argparse.ArgumentParser:
 
     rd = sub.add_parser("render", help="render a saved trajectory.npz to a GIF/MP4")
     rd.add_argument("scene")
+    add_scene_options(rd)
     rd.add_argument("trajectory")
     rd.add_argument("output")
     rd.set_defaults(func=cmd_render)

@@ -6,6 +6,7 @@ key path, e.g. ``mpm.bodies[1].material.E: must be > 0``.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -13,6 +14,7 @@ import yaml
 from pydantic import ValidationError
 
 from cosim.errors import SceneError
+from cosim.scene.assignments import apply_assignments
 from cosim.scene.checks import semantic_problems
 from cosim.scene.messages import format_errors
 from cosim.scene.schema import Scene
@@ -33,8 +35,9 @@ def parse_scene(data: Any, source_dir: Path | str = ".", origin: str = "scene") 
     return scene
 
 
-def load_scene(path: str | Path, overrides: dict | None = None) -> Scene:
-    """Read, parse and validate a YAML scene file; ``overrides`` replace top-level keys."""
+def load_scene(path: str | Path, overrides: dict | None = None, assignments: Sequence[str] = ()) -> Scene:
+    """Read, parse and validate a YAML scene file; ``overrides`` replace top-level keys, then each
+    ``KEY.PATH=VALUE`` of ``assignments`` sets one value (``cosim.scene.assignments``, the CLI's ``--set``)."""
     path = Path(path)
     if not path.is_file():
         raise SceneError(f"scene file not found: {path}")
@@ -44,4 +47,6 @@ def load_scene(path: str | Path, overrides: dict | None = None) -> Scene:
         raise SceneError(f"{path}: not valid YAML: {exc}") from None
     if isinstance(data, dict) and overrides:
         data = {**data, **overrides}
+    if isinstance(data, dict) and assignments:
+        data = apply_assignments(data, list(assignments))
     return parse_scene(data, path.parent, origin=str(path))
