@@ -1,4 +1,4 @@
-"""The `cosim` command: run | validate | gradcheck | optimize | bench | render.
+"""The `cosim` command: run | validate | gradcheck | optimize | sweep | bench | render.
 
 Every user error (a wrong scene key, a missing file, an unstable step) ends as
 one message on stderr and a non-zero exit code (2: bad scene, 3: simulation
@@ -37,9 +37,7 @@ def _load(args, **defaults):
     then ``--precision`` / ``--arch`` and the ``--set`` assignments, which win over both."""
     from cosim.scene import load_scene
 
-    assignments = [f"{key}={getattr(args, key)}" for key in ("precision", "arch") if getattr(args, key, None)]
-    assignments += getattr(args, "set", None) or []
-    return load_scene(resolve_scene(args.scene), defaults or None, assignments)
+    return load_scene(resolve_scene(args.scene), defaults or None, _assignments(args))
 
 
 def add_scene_options(parser: argparse.ArgumentParser) -> None:
@@ -137,79 +135,155 @@ def cmd_gradcheck(args) -> int:
 
 
 def cmd_optimize(args) -> int:
+    from cosim.adjoint.optimize_scene import optimize_scene
+
+    if args.starts > 1:
+        return _optimize_starts(args)
+    scene = _load(args, precision="float64")
+    out = Path(args.out or f"out/{scene.name}_optimize")
+    summary = optimize_scene(
+        scene,
+        out,
+        args.iters,
+        args.lr,
+        args.method,
+        args.steps,
+        resume=args.resume,
+        progress=not args.quiet,
+        preview=not args.no_preview,
+    )
+    _report_optimisation(summary)
+    print("wrote " + ", ".join(summary["written"]))
+    return 0
+
+
+def _report_optimisation(summary: dict) -> None:
+    first, best = summary["losses"][0], summary["best_loss"]
+    change = f" ({100 * (best - first) / abs(first):+.1f}%)" if first else ""
+    iterations = len(summary["losses"]) - 1
+    print(f"loss {first:.6e} -> {best:.6e}{change} in {iterations} iterations ({summary['wall_time_s']:.1f} s)")
+
+
+def _optimize_starts(args) -> int:
+    """``--starts K``: K optimisations on Ray, start 0 from the scene's initial guess, start k from it
+    moved by ``--perturb`` x each parameter's scale (seed k); the best one's parameters are kept."""
     import json
 
     import numpy as np
     from tqdm import tqdm
 
-    from cosim.adjoint.objective import Objective
-    from cosim.adjoint.optimize import PARAM_BOUNDS, minimise
-    from cosim.adjoint.report import plot_losses, write_history
-    from cosim.errors import SceneError
-    from cosim.run import Recorder
-    from cosim.scene.build import build_system
+    from cosim.errors import SimulationError
+    from cosim.scale.jobs import optimize_start
+    from cosim.scale.pool import run_jobs
+    from cosim.scale.results import write_starts
 
-    scene = _load(args, precision="float64")
-    spec = scene.optimize
-    sim = build_system(scene, requires_grad=True, steps=args.steps)
-    obj = Objective(sim)
-    names = obj.select(spec.params)
-    if not names:
-        raise SceneError(f"optimize.params: none of {spec.params} exists in this scene (impulse needs controls)")
-    iterations = args.iters or spec.iterations
-    lr = args.lr or spec.learning_rate
-    method = args.method or spec.method
-    out = Path(args.out or f"out/{scene.name}_optimize")
-    out.mkdir(parents=True, exist_ok=True)
+    if args.resume:
+        from cosim.errors import InputError
+
+        raise InputError("--resume continues one optimisation; resume each start with its own folder OUT/start_K")
+    scene = _load(args, precision="float64")  # checks the scene before any worker starts
+    out = Path(args.out or f"out/{scene.name}_optimize").resolve()
+    assignments = _assignments(args)
+    argsets = []
+    for k in range(args.starts):
+        settings = {
+            "iterations": args.iters,
+            "lr": args.lr,
+            "method": args.method,
+            "steps": args.steps,
+            "preview": not args.no_preview,
+            "perturbation": args.perturb if k else 0.0,
+            "seed": k,
+        }
+        argsets.append(
+            (str(resolve_scene(args.scene)), {"precision": "float64"}, assignments, settings, str(out / f"start_{k}"))
+        )
     print(
-        f"optimize {scene.name}: {', '.join(names)}; loss {' + '.join(obj.loss.values)}; {sim.steps} steps; "
-        f"{method} lr {lr:g} x scale" + ("; resuming" if args.resume else "")
+        f"optimize {scene.name}: {args.starts} starts on Ray (start 0: the scene's guess; others moved by {args.perturb:g} x scale)"
     )
-    bar = tqdm(total=iterations, desc="optimize", unit="it", disable=args.quiet)
-
-    def on_iteration(row: dict, history: list[dict]) -> None:
-        write_history(out, history)  # every iteration: an interrupted run keeps its log
-        bar.update(row["iteration"] + 1 - bar.n)
-        bar.set_postfix(loss=f"{row['loss']:.4e}")
-
-    result = minimise(
-        obj.evaluate,
-        obj.initial_params(),
-        names,
-        obj.natural_scales(),
-        iterations,
-        lr,
-        method,
-        {**PARAM_BOUNDS, **obj.bounds()},
-        obj.projections(),
-        terms=lambda: dict(obj.loss.values),
-        on_iteration=on_iteration,
-        checkpoint=out / "checkpoint.npz",
-        resume=args.resume,
-    )
-    bar.close()
-    wall = sum(r["seconds"] for r in result.history)
-    first, best = result.losses[0], result.best_loss
-    change = f" ({100 * (best - first) / abs(first):+.1f}%)" if first else ""
-    print(f"loss {first:.6e} -> {best:.6e}{change} in {iterations} iterations ({wall:.1f} s)")
-    np.savez(out / "params.npz", **{k: result.params[k] for k in names})  # the optimised ones, not x0 etc.
-    write_history(out, result.history)
-    plot_losses(out, result.losses, f"{scene.name}: {method}, {', '.join(names)}")
-    summary = {"params": names, "method": method, "losses": result.losses, "best_loss": best, "wall_time_s": wall}
+    starts, errors = {}, {}
+    with tqdm(total=args.starts, desc="starts", unit="start", disable=args.quiet) as bar:
+        for outcome in run_jobs(optimize_start, argsets, args.workers, args.address):
+            (starts if outcome.ok else errors)[outcome.index] = outcome.value
+            bar.update()
+    for k, message in sorted(errors.items()):
+        print(f"start {k} failed: {message}")
+    if not starts:
+        raise SimulationError(f"every one of the {args.starts} starts failed (first: {errors[min(errors)]})")
+    out.mkdir(parents=True, exist_ok=True)
+    write_starts(out, starts, f"{scene.name}: {args.starts} starts")
+    best = min(starts, key=lambda k: starts[k]["best_loss"])
+    np.savez(out / "params.npz", **starts[best]["best_params"])
+    summary = {k: v for k, v in starts[best].items() if k not in ("best_params", "written")}
+    summary.update({"best_start": best, "starts": {k: s["best_loss"] for k, s in sorted(starts.items())}})
+    summary["failed_starts"] = {k: errors[k] for k in sorted(errors)}
     (out / "optimization.json").write_text(json.dumps(summary, indent=2))
-    recorder = Recorder(sim)
-    obj.rollout(result.params, on_step=lambda n: recorder(n) if n == 0 or recorder.wants(n) else None)
-    preview = recorder.write(out, preview=not args.no_preview)
-    written = ["params.npz", "optimization.json", "optimization.csv", "loss.png", "trajectory.npz"]
-    written += ["checkpoint.npz"] if method != "lbfgs" else []  # scipy's L-BFGS-B is not checkpointed
-    print("wrote " + ", ".join(f"{out}/{name}" for name in written + ([preview] if preview else [])))
-    return 0
+    for k in sorted(starts):
+        first, best_k = starts[k]["losses"][0], starts[k]["best_loss"]
+        print(f"start {k}: loss {first:.6e} -> {best_k:.6e}")
+    print(f"best: start {best} ({starts[best]['best_loss']:.6e}), its outputs in {out}/start_{best}")
+    print(f"wrote {out}/params.npz, {out}/optimization.json, {out}/starts.csv, {out}/starts.png")
+    return 0 if not errors else 3
+
+
+def _assignments(args) -> list[str]:
+    """The command line's scene changes as assignments: --precision, --arch, then every --set."""
+    out = [f"{key}={getattr(args, key)}" for key in ("precision", "arch") if getattr(args, key, None)]
+    return out + (getattr(args, "set", None) or [])
+
+
+def cmd_sweep(args) -> int:
+    """Every ``--grid`` combination (or ``--samples`` of them) as one Ray task each, into OUT/sweep.csv."""
+    from tqdm import tqdm
+
+    from cosim.scale.cases import grid_cases
+    from cosim.scale.jobs import run_case
+    from cosim.scale.pool import run_jobs
+    from cosim.scale.results import SweepTable
+
+    if not args.grid:
+        from cosim.errors import InputError
+
+        raise InputError(
+            "cosim sweep needs at least one --grid KEY.PATH=v1,v2,... (e.g. --grid contact.friction=0,0.3)"
+        )
+    defaults = {"precision": "float64"} if args.loss else {}
+    cases = grid_cases(args.grid, args.samples, args.seed)
+    path = resolve_scene(args.scene)
+    base = _assignments(args)
+    for case in cases:  # every case must be a valid scene before any worker starts
+        _load_with(path, defaults, base + case)
+    scene_name = _load_with(path, defaults, base).name
+    out = Path(args.out or f"out/{scene_name}_sweep")
+    table = SweepTable(out / "sweep.csv", [g.partition("=")[0].strip() for g in args.grid])
+    argsets = [(str(path), defaults, base + case, args.steps, args.loss) for case in cases]
+    print(f"sweep {scene_name}: {len(cases)} cases" + (" (loss and gradient)" if args.loss else ""))
+    with tqdm(total=len(cases), desc="sweep", unit="case", disable=args.quiet) as bar:
+        try:
+            for outcome in run_jobs(run_case, argsets, args.workers, args.address):
+                table.add(outcome.index, cases[outcome.index], outcome.ok, outcome.value)
+                bar.update()
+                if not outcome.ok:
+                    tqdm.write(f"case {outcome.index} ({', '.join(cases[outcome.index])}) failed: {outcome.value}")
+        except KeyboardInterrupt:
+            print(f"{len(table.rows)} of {len(cases)} cases had finished; kept in {table.path}", file=sys.stderr)
+            raise
+    print(f"{len(cases) - table.failed} of {len(cases)} cases ok; wrote {table.path}")
+    return 0 if table.failed == 0 else 3
+
+
+def _load_with(path: Path, defaults: dict, assignments: list[str]):
+    from cosim.scene import load_scene
+
+    return load_scene(path, defaults or None, assignments)
 
 
 def cmd_bench(args) -> int:
     from cosim.bench import run_bench
 
-    return run_bench(args.what, Path(args.out), quick=args.quick, repeat=args.repeat)
+    return run_bench(
+        args.what, Path(args.out), quick=args.quick, repeat=args.repeat, workers=args.workers, address=args.address
+    )
 
 
 def cmd_render(args) -> int:
@@ -262,6 +336,14 @@ def _rigid_of(scene, traj, path: Path):
         )
     count = len(traj["time"])
     return rigid, [[(traj[f"rigid_pos_{n}"][i], traj[f"rigid_rot_{n}"][i]) for n in names] for i in range(count)]
+
+
+def add_ray_options(parser: argparse.ArgumentParser) -> None:
+    """``--workers`` and ``--address``: where fanned-out runs go (``cosim.scale.pool``)."""
+    parser.add_argument(
+        "--workers", type=positive_int, help="Ray worker processes (default: the cores, or the cluster's CPUs)"
+    )
+    parser.add_argument("--address", help="a Ray cluster's address (e.g. 10.0.0.5:6379); default: a local Ray")
 
 
 def positive_int(text: str) -> int:
@@ -337,7 +419,37 @@ def make_parser() -> argparse.ArgumentParser:
     )
     o.add_argument("--quiet", action="store_true", help="no progress bar")
     o.add_argument("--no-preview", action="store_true", help="skip the final rollout's preview")
+    o.add_argument(
+        "--starts", type=positive_int, default=1, help="K optimisations in parallel on Ray from perturbed guesses"
+    )
+    o.add_argument(
+        "--perturb",
+        type=positive_float,
+        default=0.1,
+        help="--starts: initial-guess noise, a fraction of each parameter's scale (default 0.1)",
+    )
+    add_ray_options(o)
     o.set_defaults(func=cmd_optimize)
+
+    sw = sub.add_parser("sweep", help="run a scene over a grid of settings on Ray, into one CSV")
+    sw.add_argument("scene")
+    sw.add_argument(
+        "--grid",
+        action="append",
+        metavar="KEY.PATH=v1,v2,...",
+        help="values of one scene key (repeatable: every combination runs), e.g. --grid contact.friction=0,0.3",
+    )
+    sw.add_argument("--samples", type=positive_int, help="run N combinations drawn at random instead of all")
+    sw.add_argument("--seed", type=int, default=0, help="--samples: the draw's seed (default 0)")
+    sw.add_argument(
+        "--loss", action="store_true", help="record the loss and gradient norms (float64) instead of run metrics"
+    )
+    sw.add_argument("--steps", type=positive_int, help="macro steps (default: the scene's)")
+    sw.add_argument("--out", help="output folder (default: out/SCENE_sweep)")
+    sw.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_scene_options(sw)
+    add_ray_options(sw)
+    sw.set_defaults(func=cmd_sweep)
 
     b = sub.add_parser("bench", help="benchmarks: throughput, backward/forward ratio, memory")
     b.add_argument("what", choices=BENCHMARKS)
@@ -346,6 +458,7 @@ def make_parser() -> argparse.ArgumentParser:
     b.add_argument(
         "--repeat", type=positive_int, default=3, help="contact, coupling, cloth: repetitions; times are medians"
     )
+    add_ray_options(b)
     b.set_defaults(func=cmd_bench)
 
     rd = sub.add_parser("render", help="render a saved trajectory.npz to a GIF/MP4")

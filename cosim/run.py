@@ -138,7 +138,7 @@ def up_axis(gravity) -> np.ndarray:
 
 def run_scene(
     scene: Scene,
-    out_dir: Path,
+    out_dir: Path | None,
     steps: int | None = None,
     progress: bool = True,
     preview: bool = True,
@@ -149,14 +149,15 @@ def run_scene(
     Writes ``trajectory.npz``, ``metrics.json`` and ``preview.gif|mp4`` (see
     docs/outputs.md) and returns the metrics; with ``save_target`` also ``target.npz``,
     every body's and cloth's final positions ``x_<name>`` [m] (a chamfer loss's
-    ``points: {rollout: ...}``).
+    ``points: {rollout: ...}``). ``out_dir`` None writes nothing (a sweep's case: metrics only).
     """
     from tqdm import tqdm
 
     from cosim.scene.build import build_system
 
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    if out_dir is not None:
+        out_dir = Path(out_dir)
+        out_dir.mkdir(parents=True, exist_ok=True)
     t_build = time.perf_counter()
     sim = build_system(scene, requires_grad=False, steps=steps)
     build_s = time.perf_counter() - t_build
@@ -175,7 +176,7 @@ def run_scene(
     sim.rollout(on_step=on_step)
     wall = time.perf_counter() - t0
     bar.close()
-    if save_target:
+    if save_target and out_dir is not None:
         final = sim.state()
         targets = {f"x_{name}": final["mpm"]["x"][sl] for name, sl in sim.slices.items()}
         targets.update({f"x_{name}": final[name]["x"] for name, e in sim.engines.items() if hasattr(e, "mesh")})
@@ -220,6 +221,8 @@ def run_scene(
         metrics["joint_positions"] = {
             spec.name: skel.getPositions().tolist() for spec, skel in zip(engine.specs, engine.skeletons)
         }
+    if out_dir is None:
+        return metrics
     name = recorder.write(out_dir, preview)
     if name:
         metrics["preview"] = name

@@ -11,6 +11,9 @@ default scene's cold run take 35 s instead of 24 s, while the optimised MPM kern
 only about 1.3x faster (measured). Runs that are long enough to win it back, and every
 benchmark, turn it on: ``optimize_kernels(True)``, ``cosim run --optimize-kernels`` or the
 environment variable ``COSIM_OPTIMIZE_KERNELS=1``.
+
+Threads: Taichi's CPU backend uses every core unless ``COSIM_CPU_THREADS`` caps it (set by
+the scale-out workers, ``cosim.scale``, so that W workers on C cores do not run W x C threads).
 """
 
 from __future__ import annotations
@@ -29,6 +32,11 @@ def optimize_kernels(enabled: bool = True) -> None:
     global _optimize
     _optimize = bool(enabled)
     os.environ["COSIM_OPTIMIZE_KERNELS"] = "1" if _optimize else ""
+
+
+def kernels_optimized() -> bool:
+    """Whether the next Taichi start-up compiles with advanced optimisation."""
+    return _optimize
 
 
 def taichi_precision(precision: str):
@@ -61,8 +69,15 @@ def ensure_taichi(arch: str = "cpu", precision: str = "float64") -> None:
         log_level=ti.WARN,
         random_seed=0,
         advanced_optimization=_optimize,
+        **_thread_cap(),
     )
     _current = key
+
+
+def _thread_cap() -> dict:
+    """``cpu_max_num_threads`` from ``COSIM_CPU_THREADS`` when set (see the module docstring)."""
+    value = os.environ.get("COSIM_CPU_THREADS", "")
+    return {"cpu_max_num_threads": int(value)} if value else {}
 
 
 def current() -> tuple[str, str] | None:

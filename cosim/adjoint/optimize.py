@@ -122,12 +122,9 @@ def minimise(
                     "lower optimize.learning_rate or check the scene's stability"
                 )
             row[f"grad:{k}"] = float(np.linalg.norm(g))
-            params[k] = params[k] + optimiser.step(it, k, g, learning_rate, scales[k])
-            bound = _bound(bounds, k)
-            if bound:
-                params[k] = np.clip(params[k], *bound)
-            if k in projections:
-                params[k] = projections[k](params[k])
+            params[k] = constrain(
+                params[k] + optimiser.step(it, k, g, learning_rate, scales[k]), k, bounds, projections
+            )
         row["seconds"] = time.perf_counter() - t0
         result.losses.append(loss)
         result.history.append(row)
@@ -141,6 +138,15 @@ def minimise(
         result.best_loss = final
         result.params = {k: a.copy() for k, a in params.items()}
     return result
+
+
+def constrain(value: np.ndarray, name: str, bounds: dict | None, projections: dict | None) -> np.ndarray:
+    """Parameter ``name``'s ``value`` clipped to its bounds, then mapped by its projection (if any)."""
+    bound = _bound(bounds, name)
+    if bound:
+        value = np.clip(value, *bound)
+    projections = projections or {}
+    return projections[name](value) if name in projections else value
 
 
 def _bound(bounds: dict | None, name: str):

@@ -15,10 +15,18 @@ from pathlib import Path
 BENCHMARKS = ("mpm", "contact", "coupling", "cloth")
 
 
-def run_bench(what: str, out_dir: Path, quick: bool = False, repeat: int = 3) -> int:
+def run_bench(
+    what: str,
+    out_dir: Path,
+    quick: bool = False,
+    repeat: int = 3,
+    workers: int | None = None,
+    address: str | None = None,
+) -> int:
     """Run benchmark ``what`` (one of ``BENCHMARKS``), writing into ``out_dir``; returns the exit code.
 
-    ``quick``: fewer steps (a smoke run); ``repeat`` (contact, coupling, cloth): repetitions, times are medians.
+    ``quick``: fewer steps (a smoke run); ``repeat`` (contact, coupling, cloth): repetitions, times are medians;
+    ``workers`` / ``address`` (contact: its independent runs): on Ray (``cosim.scale.pool``) when more than one.
     """
     if what == "cloth":
         from cosim.bench.cloth import run_cloth_bench
@@ -31,7 +39,7 @@ def run_bench(what: str, out_dir: Path, quick: bool = False, repeat: int = 3) ->
     if what == "contact":
         from cosim.bench.contact import run_contact_bench
 
-        return run_contact_bench(out_dir, quick=quick, repeat=repeat)
+        return run_contact_bench(out_dir, quick=quick, repeat=repeat, workers=workers, address=address)
     if what == "mpm":
         from cosim.bench.mpm import run_mpm_bench
 

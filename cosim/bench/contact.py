@@ -31,6 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
+from cosim.errors import SimulationError
+
 RUNS = [("grid", None), ("particle", 400.0), ("particle", 600.0), ("particle", 2000.0), ("forecast", None)]
 THICKNESSES = [1 / 32, 1 / 64]
 REBOUND_SPEED = 5.0  # x the wall speed
@@ -130,6 +132,46 @@ def run_table(thickness: float, steps: int, chunk: int = 10) -> list[dict]:
     return [run.result() for run in runs]
 
 
+def run_case(model: str, stiffness: float | None, thickness: float, steps: int) -> dict:
+    """One model at one wall thickness on its own (a Ray job of ``run_tables``)."""
+    run = ContainerRun(model, stiffness, thickness, steps)
+    run.advance(steps)
+    return run.result()
+
+
+def run_tables(steps: int, repeat: int, workers: int | None, address: str | None) -> list[list[dict]]:
+    """``repeat`` repetitions of every model x thickness: in this process, each thickness's models
+    advanced in turn so that they share the machine's state (``run_table``), or with ``workers`` > 1
+    or an ``address`` as Ray jobs (``cosim.scale.pool``), one per run, each on its own core(s)."""
+    if not (address or (workers or 1) > 1):
+        repeats = []
+        for rep in range(repeat):
+            rows = [row for thickness in THICKNESSES for row in run_table(thickness, steps)]
+            for row in rows:
+                _print_row(rep, repeat, row)
+            repeats.append(rows)
+        return repeats
+    from cosim.scale.pool import run_jobs
+
+    cases = [(model, k, thickness, steps) for _ in range(repeat) for thickness in THICKNESSES for model, k in RUNS]
+    rows: list[dict | None] = [None] * len(cases)
+    per_rep = len(cases) // repeat
+    for outcome in run_jobs(run_case, cases, workers, address):
+        if not outcome.ok:
+            raise SimulationError(f"contact benchmark run {cases[outcome.index][:3]} failed: {outcome.value}")
+        rows[outcome.index] = outcome.value
+        _print_row(outcome.index // per_rep, repeat, outcome.value)
+    return [rows[i : i + per_rep] for i in range(0, len(rows), per_rep)]
+
+
+def _print_row(rep: int, repeat: int, row: dict) -> None:
+    print(
+        f"  [{rep + 1}/{repeat}] {row['model']:9s} k={row['k']:5s} wall {row['thickness']}: penetrated "
+        f"{row['penetrated']:5d}, in wall {row['in_wall']:4d}, rebound {row['rebound']:4d}, {row['seconds']:.1f} s",
+        flush=True,
+    )
+
+
 def _median_rows(repeats: list[list[dict]]) -> list[dict]:
     """Counts from the first repetition (the serial scatter makes runs deterministic; checked),
     seconds as medians, forecast-or-other / grid time as the median of per-repetition ratios."""
@@ -154,28 +196,18 @@ def _median_rows(repeats: list[list[dict]]) -> list[dict]:
     return rows
 
 
-def run_contact_bench(out_dir: Path, quick: bool = False, repeat: int = 3) -> int:
-    """All models x thicknesses, ``repeat`` times; writes contact.csv, contact.md and contact.png."""
+def run_contact_bench(
+    out_dir: Path, quick: bool = False, repeat: int = 3, workers: int | None = None, address: str | None = None
+) -> int:
+    """All models x thicknesses, ``repeat`` times (on Ray with ``workers`` > 1 or an ``address``: see
+    ``run_tables``); writes contact.csv, contact.md and contact.png."""
     from cosim.run import hardware_line
     from cosim.runtime import ensure_taichi
 
     ensure_taichi("cpu", "float32")
     out_dir.mkdir(parents=True, exist_ok=True)
     steps = 100 if quick else 1100
-    repeats = []
-    for rep in range(repeat):
-        rows = []
-        for thickness in THICKNESSES:
-            for row in run_table(thickness, steps):
-                rows.append(row)
-                model = row["model"]
-                print(
-                    f"  [{rep + 1}/{repeat}] {model:9s} k={row['k']:5s} wall {row['thickness']}: penetrated "
-                    f"{row['penetrated']:5d}, in wall {row['in_wall']:4d}, rebound {row['rebound']:4d}, "
-                    f"{row['seconds']:.1f} s",
-                    flush=True,
-                )
-        repeats.append(rows)
+    repeats = run_tables(steps, repeat, workers, address)
     rows = _median_rows(repeats)
     # the forecast objective's decrease, in a separate short run: tracking it syncs every substep
     tracked_run = ContainerRun("forecast", None, THICKNESSES[0], min(steps, 200), track=True)
@@ -189,7 +221,12 @@ def run_contact_bench(out_dir: Path, quick: bool = False, repeat: int = 3) -> in
     lines = [
         (
             f"Contact benchmark: {steps} frames of shake_container_2d on {hardware_line()}; "
-            f"seconds: median of {repeat} repetitions in one process"
+            f"seconds: median of {repeat} repetitions "
+            + (
+                "in one process"
+                if not (address or (workers or 1) > 1)
+                else f"as Ray jobs on {workers or 'all'} workers"
+            )
         ),
         "",
         "| model | k | wall | penetrated | in wall | rebound | seconds | time / grid (min-max) |",
