@@ -55,21 +55,6 @@ def test_a_sweep_gives_the_same_numbers_on_one_and_two_workers(tiny, tmp_path):
     assert abs(strain[0] - strain[2]) > 0.05 * max(strain[0], strain[2])
 
 
-def test_a_failing_case_is_recorded_and_the_others_go_on(tiny, tmp_path):
-    """One substep per 20 ms frame fails the build's stability check inside the worker; the 'auto' case runs."""
-    out = tmp_path / "s"
-    res = run_cli(
-        "sweep", str(tiny), "--grid", "time.substeps=1,auto", "--set", "time.frame_dt=0.02",
-        "--out", str(out), "--workers", "2", "--quiet",
-    )  # fmt: skip
-    assert res.returncode == 3, res.stderr
-    rows = _rows(out / "sweep.csv")
-    assert [r["status"] for r in rows] == ["failed", "ok"]
-    assert "substeps" in rows[0]["error"] and rows[1]["error"] == ""
-    assert float(rows[1]["steps"]) == 5
-    assert "1 of 2 cases ok" in res.stdout
-
-
 def test_a_wrong_grid_key_stops_before_any_worker_starts(tiny):
     res = run_cli("sweep", str(tiny), "--grid", "mpm.bodies[0].material.EE=1,2")
     assert res.returncode == 2
@@ -144,3 +129,69 @@ def test_ctrl_c_keeps_the_finished_cases(tmp_path):
     assert proc.returncode == 130, err
     assert 1 <= len(rows) < 4 and all(r["status"] == "ok" for r in rows)
     assert f"{len(rows)} of 4 cases had finished" in err
+
+
+def test_grid_cases_combine_and_sample_reproducibly():
+    from cosim.errors import SceneError
+    from cosim.scale.cases import grid_cases, split_values
+
+    grids = ["a.E=1,2,3", "b.center=[0.1,0.2],[0.3,0.4]"]
+    every = grid_cases(grids)
+    assert len(every) == 6 and every[1] == ["a.E=1", "b.center=[0.3,0.4]"]  # the last grid varies fastest
+    four = grid_cases(grids, samples=4, seed=7)
+    assert len({tuple(c) for c in four}) == 4 and all(c in every for c in four)
+    assert grid_cases(grids, samples=4, seed=7) == four and grid_cases(grids, samples=4, seed=8) != four
+    assert grid_cases(grids, samples=10) == every
+    assert split_values("[1,2],{a: 1, b: 2},3") == ["[1,2]", "{a: 1, b: 2}", "3"]
+    with pytest.raises(SceneError, match="given twice"):
+        grid_cases(["a.E=1", "a.E=2"])
+    with pytest.raises(SceneError, match="expected KEY.PATH=v1,v2"):
+        grid_cases(["a.E="])
+
+
+def test_a_loss_sweep_reports_what_the_objective_gives(tmp_path):
+    """`--loss` cases on the steering task: each row's loss and gradient norm equal Objective.evaluate's
+    for that case's impulse scale (the scene's controls start at the swept impulse)."""
+    from conftest import make_scene
+
+    from cosim.adjoint.objective import Objective
+    from cosim.scene.build import build_system
+
+    scene = tmp_path / "steer.yaml"
+    scene.write_text(yaml.safe_dump(scene_dict(**steering_scene(optimize={"params": ["impulse"]}))))
+    values = ["[0.0,0.0]", "[0.002,0.0]"]
+    res = run_cli(
+        "sweep", str(scene), "--loss", "--grid", f"controls[0].impulse={','.join(values)}",
+        "--workers", "2", "--out", str(tmp_path / "l"), "--quiet",
+    )  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    rows = _rows(tmp_path / "l" / "sweep.csv")
+    for row, value in zip(rows, values):
+        spec = steering_scene()
+        spec["controls"] = [{"body": "block", "impulse": yaml.safe_load(value)}]
+        direct = Objective(build_system(make_scene(**spec), requires_grad=True))
+        loss, grads = direct.evaluate(direct.initial_params(), grad=True)
+        assert float(row["loss"]) == pytest.approx(loss, rel=1e-9)
+        assert float(row["grad_norm/impulse"]) == pytest.approx(np.linalg.norm(grads["impulse"]), rel=1e-9)
+    assert float(rows[0]["loss"]) != pytest.approx(float(rows[1]["loss"]), rel=1e-3)
+
+
+def test_a_sweep_on_a_cluster_records_a_failing_case_and_goes_on(tiny, tmp_path):
+    """A Ray cluster started here (a one-machine cluster) and the sweep pointed at its address: one
+    substep per 20 ms frame fails the build's stability check inside its worker, the 'auto' case runs."""
+    import ray
+
+    context = ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    try:
+        res = run_cli(
+            "sweep", str(tiny), "--grid", "time.substeps=1,auto", "--set", "time.frame_dt=0.02",
+            "--address", context.address_info["address"], "--out", str(tmp_path / "c"), "--quiet",
+        )  # fmt: skip
+    finally:
+        ray.shutdown()
+    assert res.returncode == 3, res.stderr
+    rows = _rows(tmp_path / "c" / "sweep.csv")
+    assert [r["status"] for r in rows] == ["failed", "ok"]
+    assert "substeps" in rows[0]["error"] and rows[1]["error"] == ""
+    assert float(rows[1]["steps"]) == 5
+    assert "1 of 2 cases ok" in res.stdout
