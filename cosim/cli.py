@@ -136,9 +136,17 @@ def cmd_gradcheck(args) -> int:
 
 def cmd_optimize(args) -> int:
     from cosim.adjoint.optimize_scene import optimize_scene
+    from cosim.errors import InputError
 
     if args.starts > 1:
-        return _optimize_starts(args)
+        from cosim.scale.commands import optimize_starts
+
+        if args.resume:
+            raise InputError("--resume continues one optimisation; resume each start with its own folder OUT/start_K")
+        return optimize_starts(
+            resolve_scene(args.scene), _assignments(args), args.starts, args.perturb, args.iters, args.lr,
+            args.method, args.steps, args.out, not args.no_preview, args.workers, args.address, args.quiet,
+        )  # fmt: skip
     scene = _load(args, precision="float64")
     out = Path(args.out or f"out/{scene.name}_optimize")
     summary = optimize_scene(
@@ -164,68 +172,6 @@ def _report_optimisation(summary: dict) -> None:
     print(f"loss {first:.6e} -> {best:.6e}{change} in {iterations} iterations ({summary['wall_time_s']:.1f} s)")
 
 
-def _optimize_starts(args) -> int:
-    """``--starts K``: K optimisations on Ray, start 0 from the scene's initial guess, start k from it
-    moved by ``--perturb`` x each parameter's scale (seed k); the best one's parameters are kept."""
-    import json
-
-    import numpy as np
-    from tqdm import tqdm
-
-    from cosim.errors import SimulationError
-    from cosim.scale.jobs import optimize_start
-    from cosim.scale.pool import run_jobs
-    from cosim.scale.results import write_starts
-
-    if args.resume:
-        from cosim.errors import InputError
-
-        raise InputError("--resume continues one optimisation; resume each start with its own folder OUT/start_K")
-    scene = _load(args, precision="float64")  # checks the scene before any worker starts
-    out = Path(args.out or f"out/{scene.name}_optimize").resolve()
-    assignments = _assignments(args)
-    argsets = []
-    for k in range(args.starts):
-        settings = {
-            "iterations": args.iters,
-            "lr": args.lr,
-            "method": args.method,
-            "steps": args.steps,
-            "preview": not args.no_preview,
-            "perturbation": args.perturb if k else 0.0,
-            "seed": k,
-        }
-        argsets.append(
-            (str(resolve_scene(args.scene)), {"precision": "float64"}, assignments, settings, str(out / f"start_{k}"))
-        )
-    print(
-        f"optimize {scene.name}: {args.starts} starts on Ray (start 0: the scene's guess; others moved by {args.perturb:g} x scale)"
-    )
-    starts, errors = {}, {}
-    with tqdm(total=args.starts, desc="starts", unit="start", disable=args.quiet) as bar:
-        for outcome in run_jobs(optimize_start, argsets, args.workers, args.address):
-            (starts if outcome.ok else errors)[outcome.index] = outcome.value
-            bar.update()
-    for k, message in sorted(errors.items()):
-        print(f"start {k} failed: {message}")
-    if not starts:
-        raise SimulationError(f"every one of the {args.starts} starts failed (first: {errors[min(errors)]})")
-    out.mkdir(parents=True, exist_ok=True)
-    write_starts(out, starts, f"{scene.name}: {args.starts} starts")
-    best = min(starts, key=lambda k: starts[k]["best_loss"])
-    np.savez(out / "params.npz", **starts[best]["best_params"])
-    summary = {k: v for k, v in starts[best].items() if k not in ("best_params", "written")}
-    summary.update({"best_start": best, "starts": {k: s["best_loss"] for k, s in sorted(starts.items())}})
-    summary["failed_starts"] = {k: errors[k] for k in sorted(errors)}
-    (out / "optimization.json").write_text(json.dumps(summary, indent=2))
-    for k in sorted(starts):
-        first, best_k = starts[k]["losses"][0], starts[k]["best_loss"]
-        print(f"start {k}: loss {first:.6e} -> {best_k:.6e}")
-    print(f"best: start {best} ({starts[best]['best_loss']:.6e}), its outputs in {out}/start_{best}")
-    print(f"wrote {out}/params.npz, {out}/optimization.json, {out}/starts.csv, {out}/starts.png")
-    return 0 if not errors else 3
-
-
 def _assignments(args) -> list[str]:
     """The command line's scene changes as assignments: --precision, --arch, then every --set."""
     out = [f"{key}={getattr(args, key)}" for key in ("precision", "arch") if getattr(args, key, None)]
@@ -233,13 +179,7 @@ def _assignments(args) -> list[str]:
 
 
 def cmd_sweep(args) -> int:
-    """Every ``--grid`` combination (or ``--samples`` of them) as one Ray task each, into OUT/sweep.csv."""
-    from tqdm import tqdm
-
-    from cosim.scale.cases import grid_cases
-    from cosim.scale.jobs import run_case
-    from cosim.scale.pool import run_jobs
-    from cosim.scale.results import SweepTable
+    from cosim.scale.commands import sweep
 
     if not args.grid:
         from cosim.errors import InputError
@@ -247,35 +187,10 @@ def cmd_sweep(args) -> int:
         raise InputError(
             "cosim sweep needs at least one --grid KEY.PATH=v1,v2,... (e.g. --grid contact.friction=0,0.3)"
         )
-    defaults = {"precision": "float64"} if args.loss else {}
-    cases = grid_cases(args.grid, args.samples, args.seed)
-    path = resolve_scene(args.scene)
-    base = _assignments(args)
-    for case in cases:  # every case must be a valid scene before any worker starts
-        _load_with(path, defaults, base + case)
-    scene_name = _load_with(path, defaults, base).name
-    out = Path(args.out or f"out/{scene_name}_sweep")
-    table = SweepTable(out / "sweep.csv", [g.partition("=")[0].strip() for g in args.grid])
-    argsets = [(str(path), defaults, base + case, args.steps, args.loss) for case in cases]
-    print(f"sweep {scene_name}: {len(cases)} cases" + (" (loss and gradient)" if args.loss else ""))
-    with tqdm(total=len(cases), desc="sweep", unit="case", disable=args.quiet) as bar:
-        try:
-            for outcome in run_jobs(run_case, argsets, args.workers, args.address):
-                table.add(outcome.index, cases[outcome.index], outcome.ok, outcome.value)
-                bar.update()
-                if not outcome.ok:
-                    tqdm.write(f"case {outcome.index} ({', '.join(cases[outcome.index])}) failed: {outcome.value}")
-        except KeyboardInterrupt:
-            print(f"{len(table.rows)} of {len(cases)} cases had finished; kept in {table.path}", file=sys.stderr)
-            raise
-    print(f"{len(cases) - table.failed} of {len(cases)} cases ok; wrote {table.path}")
-    return 0 if table.failed == 0 else 3
-
-
-def _load_with(path: Path, defaults: dict, assignments: list[str]):
-    from cosim.scene import load_scene
-
-    return load_scene(path, defaults or None, assignments)
+    return sweep(
+        resolve_scene(args.scene), _assignments(args), args.grid, args.samples, args.seed, args.loss, args.steps,
+        args.out, args.workers, args.address, args.quiet,
+    )  # fmt: skip
 
 
 def cmd_bench(args) -> int:

@@ -38,11 +38,13 @@ def optimize_scene(
     resume: bool = False,
     progress: bool = True,
     preview: bool = True,
+    announce: bool = True,
     perturbation: float = 0.0,
     seed: int = 0,
 ) -> dict:
     """Minimise ``scene``'s loss over ``optimize.params`` from its initial guess (moved by
     ``perturbation``, a fraction of each parameter's scale, with ``seed``: see ``perturb``).
+    ``progress``: a progress bar; ``announce``: print what is optimised first.
     Returns the summary written to ``optimization.json`` plus ``best_params`` (name -> array)."""
     from tqdm import tqdm
 
@@ -67,7 +69,7 @@ def optimize_scene(
     initial = obj.initial_params()
     if perturbation:
         initial = perturb(initial, names, scales, perturbation, seed, bounds, projections)
-    if progress:
+    if announce:
         print(
             f"optimize {scene.name}: {', '.join(names)}; loss {' + '.join(obj.loss.values)}; {sim.steps} steps; "
             f"{method} lr {lr:g} x scale" + ("; resuming" if resume else "")

@@ -59,4 +59,4 @@ def optimize_start(scene_path: str, defaults: dict, assignments: list[str], sett
     from cosim.scene import load_scene
 
     scene = load_scene(scene_path, defaults or None, assignments)
-    return optimize_scene(scene, Path(out), progress=False, **settings)
+    return optimize_scene(scene, Path(out), progress=False, announce=False, **settings)
