@@ -37,7 +37,25 @@ def _load(args, **defaults):
     then ``--precision`` / ``--arch`` and the ``--set`` assignments, which win over both."""
     from cosim.scene import load_scene
 
-    return load_scene(resolve_scene(args.scene), defaults or None, _assignments(args))
+    scene = load_scene(resolve_scene(args.scene), defaults or None, _assignments(args))
+    if "precision" in defaults:
+        _say_precision(args, scene.precision)
+    return scene
+
+
+def _say_precision(args, used: str) -> None:
+    """Tell when a command runs in another precision than the scene file's (gradcheck and optimize
+    default to float64: central differences and long adjoints need its round-off)."""
+    import yaml
+
+    data = yaml.safe_load(resolve_scene(args.scene).read_text()) or {}
+    written = data.get("precision", "float32") if isinstance(data, dict) else "float32"
+    chosen = getattr(args, "precision", None) or any(
+        a.startswith("precision=") for a in getattr(args, "set", None) or []
+    )
+    if written != used:
+        why = "as asked" if chosen else f"{args.command}'s default; --precision {written} keeps the scene's"
+        print(f"precision: {used}, not the scene's {written} ({why})")
 
 
 def add_scene_options(parser: argparse.ArgumentParser) -> None:

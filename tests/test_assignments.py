@@ -67,3 +67,23 @@ def test_cli_set_changes_what_validate_counts(capsys):
     after = capsys.readouterr().out
     n = [int(text.split(" particles")[0].rsplit(" ", 1)[1]) for text in (before, after)]
     assert n[1] == pytest.approx(4 * n[0], rel=0.02), (before, after)
+
+
+def test_gradcheck_says_when_it_overrides_the_scene_precision(tmp_path):
+    """The tiny scene written in float32: gradcheck runs it in float64 and says so; with --precision
+    float32 it says that was asked for."""
+    import yaml
+    from conftest import run_cli, scene_dict
+
+    path = tmp_path / "tiny32.yaml"
+    path.write_text(
+        yaml.safe_dump(
+            scene_dict(precision="float32", loss={"type": "com_target", "body": "block", "target": [0.5, 0.4]})
+        )
+    )
+    res = run_cli("gradcheck", str(path), "--steps", "1", "--directions", "1")
+    assert "precision: float64, not the scene's float32 (gradcheck's default" in res.stdout, res.stdout + res.stderr
+    res = run_cli(
+        "gradcheck", str(path), "--steps", "1", "--directions", "1", "--precision", "float32", "--tolerance", "1"
+    )
+    assert "precision: float32" not in res.stdout and "gradcheck tiny: 1 steps" in res.stdout, res.stdout + res.stderr

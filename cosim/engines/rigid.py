@@ -28,6 +28,8 @@ from cosim.engines.rigid_build import CONTROL_MODES, ShapeSpec, SkeletonSpec, bu
 from cosim.errors import InputError, SimulationError
 
 _ORIGIN = np.zeros(3)
+_ADDITIVE = ("RevoluteJoint", "PrismaticJoint")  # q' = q + dt qd': a velocity bound keeps q' inside limits
+CONSTRAINT_TOL = 1e-9  # [N or N m] a generalised constraint force above this means a limit or contact acted
 
 
 @dataclass
@@ -39,6 +41,7 @@ class Control:
     dofs: np.ndarray
     mode: str
     slice: slice
+    limits: tuple[np.ndarray, np.ndarray] | None = None  # velocity mode: enforced position limits of its dofs
 
 
 # ------------------------------------------------------------------------------------------------ engine
@@ -108,7 +111,10 @@ class RigidEngine(RigidAdjoint):
                     joint.setActuatorType(dart.dynamics.ActuatorType.VELOCITY)
                 size = 6 if mode in ("wrench", "twist") else n
                 dofs = np.array([joint.getIndexInSkeleton(i) for i in range(n)])
-                controls.append(Control(k, joint, dofs, mode, slice(start, start + size)))
+                limits = None
+                if mode == "velocity" and joint.areLimitsEnforced() and joint.getType() in _ADDITIVE:
+                    limits = (np.asarray(joint.getPositionLowerLimits()), np.asarray(joint.getPositionUpperLimits()))
+                controls.append(Control(k, joint, dofs, mode, slice(start, start + size), limits))
                 start += size
         return controls
 
@@ -196,12 +202,22 @@ class RigidEngine(RigidAdjoint):
         """Advance one dt under the action and per-body world wrenches; NaN -> SimulationError."""
         action, wrenches = self._check_inputs(action, wrenches)
         before = self.flat_state()
-        self._apply(action, wrenches)
+        clamped = self._apply(action, wrenches)
         self.world.step()
         self.steps += 1
         after = self.flat_state()
         self._check_finite(after)
-        return StepRecord(before, action, wrenches, after)
+        return StepRecord(before, action, wrenches, after, self.steps, clamped, self._active_constraint())
+
+    def _active_constraint(self) -> tuple[str, float] | None:
+        """("skeleton/dof", force) of the largest generalised constraint force of the last step (a joint
+        limit or a rigid contact acted), or None."""
+        for spec, skel in zip(self.specs, self.skeletons):
+            forces = np.asarray(skel.getConstraintForces())
+            if len(forces) and np.abs(forces).max() > CONSTRAINT_TOL:
+                i = int(np.argmax(np.abs(forces)))
+                return f"{spec.name}/{skel.getDof(i).getName()}", float(forces[i])
+        return None
 
     def _check_inputs(self, action, wrenches) -> tuple[np.ndarray, np.ndarray]:
         action = np.zeros(self.action_size) if action is None else np.asarray(action, dtype=np.float64).reshape(-1)
@@ -228,10 +244,13 @@ class RigidEngine(RigidAdjoint):
         """6 x (dofs of skeleton k) world Jacobian of the body origin, rows [angular; linear]."""
         return self.skeletons[k].getWorldJacobian(body, _ORIGIN)
 
-    def _apply(self, action: np.ndarray, wrenches: np.ndarray) -> None:
-        """Set joint forces, velocity commands and external wrenches for the next world.step()."""
+    def _apply(self, action: np.ndarray, wrenches: np.ndarray) -> np.ndarray:
+        """Set joint forces, velocity commands and external wrenches for the next world.step(). DART does
+        not enforce position limits on velocity-actuated joints, so a velocity command is clipped to
+        what keeps q + dt qd inside the limits; returns which action entries were clipped."""
         taus = [np.zeros(s.getNumDofs()) for s in self.skeletons]
         commands = []
+        clamped = np.zeros(self.action_size, dtype=bool)
         for c in self.controls:
             a = action[c.slice]
             if c.mode == "torque":
@@ -240,6 +259,11 @@ class RigidEngine(RigidAdjoint):
                 taus[c.skel][c.dofs] += self._joint_jacobian(c).T @ a
             else:
                 target = a if c.mode == "velocity" else np.linalg.solve(self._joint_jacobian(c), a)
+                if c.limits is not None:
+                    q = self.skeletons[c.skel].getPositions()[c.dofs]
+                    bounded = np.clip(target, (c.limits[0] - q) / self.dt, (c.limits[1] - q) / self.dt)
+                    clamped[c.slice] = bounded != target
+                    target = bounded
                 commands.append((c, target))
         for skel, tau in zip(self.skeletons, taus):
             skel.setForces(tau)
@@ -250,6 +274,7 @@ class RigidEngine(RigidAdjoint):
             if np.any(w):
                 body.addExtTorque(w[:3], False)
                 body.addExtForce(w[3:], _ORIGIN, False, True)
+        return clamped
 
     def _advance(self, state: np.ndarray, action: np.ndarray, wrenches: np.ndarray) -> np.ndarray:
         """DART's step from a given state, without bookkeeping (for finite differences)."""

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from cosim.engines.so3 import left_jacobian, left_jacobian_inv
-from cosim.errors import InputError
+from cosim.errors import InputError, SimulationError
 
 FD_EPS = 1e-6  # central-difference step for the state blocks (relative error ~1e-9 at unit scales)
 
@@ -28,6 +28,9 @@ class StepRecord:
     action: np.ndarray
     wrenches: np.ndarray
     next_state: np.ndarray
+    step: int = 0  # 1 for the engine's first step
+    clamped: np.ndarray | None = None  # (action_size,) bool: velocity commands clipped to the joint limits
+    constraint: tuple[str, float] | None = None  # ("skeleton/dof", force) when a limit or contact acted
 
 
 # ------------------------------------------------------------------------------- joint integration Jacobian
@@ -60,12 +63,23 @@ class RigidAdjoint:
         Per skeleton, with F the force-driven dofs, K the velocity-controlled ones and A = M_FF + dt D_FF:
         qd'_F = qd_F + dt A^-1 (tau_F + (J^T F)_F - C_F - D qd_F - M_FK (target - qd_K)/dt), qd'_K = target.
         Positions: q' = q + dt qd' except free/ball joints (closed form,
-        ``position_step_jacobian``). These blocks are exact for DART's unconstrained step; while a joint limit
-        or a contact is active they omit the constraint impulse's dependence on the inputs.
+        ``position_step_jacobian``). These blocks are exact for DART's unconstrained step; a step in which a
+        joint limit or a contact acted (a non-zero constraint force, ``StepRecord.constraint``) raises
+        ``SimulationError`` instead of returning a gradient that omits the impulse. Velocity commands clipped
+        to joint limits (``StepRecord.clamped``) have a zero action gradient, which is exact.
         State block: central differences over DART's own deterministic step (set_state, perturb, step): the
         closed form needs the derivatives of the Coriolis/gravity terms, M(q) and J(q), which DART does not
         expose; the differences include contacts and limits. Cost: 4 * dofs steps.
         """
+        if record.constraint is not None:
+            where, force = record.constraint
+            raise SimulationError(
+                f"rigid step {record.step}: a joint limit or a rigid contact acted on '{where}' (generalised "
+                f"constraint force {force:.3g}); the gradient of DART's step leaves constraint impulses out, so "
+                "it would be wrong here. Keep torque/wrench-driven joints inside their limits (bound the actions) "
+                "or use velocity control (its commands are clipped to the limits, and differentiated), or switch "
+                "rigid collisions off"
+            )
         g = np.asarray(grad_next_state, dtype=np.float64)
         if g.shape != (2 * self.dofs,):
             raise InputError(f"grad_next_state must have length {2 * self.dofs}, got {g.shape}")
@@ -74,6 +88,8 @@ class RigidAdjoint:
         grad_v = self._velocity_adjoint(g, record.next_state)
         grad_tau, grad_cmd = self._force_adjoints(grad_v)
         grad_action = self._action_adjoint(grad_tau, grad_cmd)
+        if record.clamped is not None:
+            grad_action[record.clamped] = 0.0  # a clipped command does not depend on its action
         grad_wrenches = (
             np.stack([self._body_jacobian(k, body) @ grad_tau[k] for k, body in self._bodies])
             if self._bodies
