@@ -32,11 +32,9 @@ def liquid_energy(F: np.ndarray, volume: float, bulk: float) -> float:
 
 def energies(engine, state: dict[str, np.ndarray], gravity) -> dict[str, float]:
     """Kinetic, gravitational and strain energy of the whole MPM state [J]."""
-    from cosim.engines.materials import lame_parameters
-
     strain = 0.0
-    for body, (lo, hi) in zip(engine.bodies, engine.ranges):
-        mu, lam = lame_parameters(body.E, body.nu, engine.dim)
+    for b, (body, (lo, hi)) in enumerate(zip(engine.bodies, engine.ranges)):
+        mu, lam = engine.lame(b)  # the current E and nu, after any set_parameters
         F = state["F"][lo:hi]
         if body.material == "liquid":
             strain += liquid_energy(F, body.particle_volume, lam + 2.0 * mu / engine.dim)

@@ -43,7 +43,6 @@ class Stepping:
     fixed: int
     grad_substeps: int
     requires_grad: bool
-    wave_speed: float  # [m/s] fastest elastic wave of the scene's bodies
 
 
 @dataclass
@@ -191,6 +190,8 @@ class CoupledSystem:
         t0 = self.step_index * self.frame_dt
         speed = self.mpm.max_speed() + float(np.linalg.norm(self.gravity)) * self.frame_dt
         fixed = st.fixed or (st.grad_substeps if st.requires_grad else 0)
+        if fixed:
+            self._check_fixed_substeps(fixed)
         K = fixed or self.auto_substeps(speed)
         for attempt in range(RETRIES + 1):
             if K > st.max_substeps:
@@ -307,8 +308,20 @@ class CoupledSystem:
     # ------------------------------------------------------------ time stepping and checks
     def auto_substeps(self, speed: float) -> int:
         """Substeps so that (|v| + c) dt / dx <= cfl, c the fastest elastic wave."""
-        bound = self.stepping.cfl * self.dx / (speed + self.stepping.wave_speed)
+        bound = self.stepping.cfl * self.dx / (speed + self.mpm.wave_speed()[0])
         return max(1, math.ceil(self.frame_dt / bound - 1e-9))
+
+    def _check_fixed_substeps(self, K: int) -> None:
+        """A fixed substep count was checked against the scene's materials at build; E or nu set since
+        (an optimisation, a gradient check) can move the stability bound dx / c past it."""
+        c, body = self.mpm.wave_speed()
+        dt = self.frame_dt / K
+        if dt * c > self.dx:
+            raise SimulationError(
+                f"step {self.step_index}: {K} fixed substeps give dt = {dt:.3g} s, above the stability bound "
+                f"dx / c = {self.dx / c:.3g} s of body '{body}' with its current E and nu (wave speed c = {c:.3g} "
+                "m/s, set after the build); bound E (optimize) or raise time.substeps"
+            )
 
     def _timed(self, key: str):
         return _Stopwatch(self.timings, key)

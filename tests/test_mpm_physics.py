@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import make_scene
+from conftest import make_scene, scene_dict
 
 from cosim.scene.build import build_system
 
@@ -222,3 +222,30 @@ def test_energy_does_not_grow_in_a_bouncing_elastic_block():
         totals.append(energies(sim.mpm, sim.mpm.state(), sim.scene.gravity)["total"])
     assert max(totals) <= e0 * 1.01
     assert min(totals) < e0  # the bounce dissipated something: the floor was hit
+
+
+def test_set_parameters_reaches_every_derived_quantity():
+    """After E is set 256x higher (same nu): the strain energy of a stretched state is 256x, and the
+    automatic substep count is the one of a 16x faster elastic wave (c ~ sqrt(E)); a gradient run with
+    its substeps fixed at the build stops naming the body instead of stepping past the stability bound."""
+    import math
+
+    from cosim.diagnostics import energies
+    from cosim.errors import SimulationError
+
+    weightless = {"mpm": {**scene_dict()["mpm"], "gravity": [0.0, 0.0]}}
+    sim = build_system(make_scene(**weightless))
+    state = sim.mpm.state()
+    state["F"][:] = np.diag([1.1, 0.95])
+    before = energies(sim.mpm, state, [0.0, 0.0])["strain"]
+    c_before = sim.mpm.wave_speed()[0]
+    E = sim.mpm.material()["E"]
+    sim.mpm.set_parameters({"E": 256 * E})
+    assert energies(sim.mpm, state, [0.0, 0.0])["strain"] == pytest.approx(256 * before, rel=1e-12)
+    expected = math.ceil(sim.frame_dt * 16 * c_before / (sim.stepping.cfl * sim.dx) - 1e-9)
+    assert sim.auto_substeps(0.0) == expected and expected >= 4
+
+    grad = build_system(make_scene(**weightless), requires_grad=True, steps=2)
+    grad.mpm.set_parameters({"E": 400 * E})
+    with pytest.raises(SimulationError, match=r"step 0: \d+ fixed substeps .* body 'block' with its current E"):
+        grad.step()

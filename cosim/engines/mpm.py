@@ -58,6 +58,7 @@ class MPMEngine(MPMAdjointKernels):
         self.boundaries: dict = {}  # name -> boundary source
         self._known_state = None  # the state the last step returned, while it is still the current one
         super().__init__(config, bodies)
+        self._material = self.material()  # E, nu per body now: the derived quantities' one source
 
     @property
     def slot(self) -> int:
@@ -145,6 +146,7 @@ class MPMEngine(MPMAdjointKernels):
         for key in ("E", "nu"):
             if key in values:
                 getattr(self, key).from_numpy(self._real(values[key]))
+        self._material = self.material()
         self._resident = -1
 
     def material(self) -> dict[str, np.ndarray]:
@@ -262,7 +264,18 @@ class MPMEngine(MPMAdjointKernels):
         return {b.name: slice(lo, hi) for b, (lo, hi) in zip(self.bodies, self.ranges)}
 
     def lame(self, b: int) -> tuple[float, float]:
-        """Lame parameters (mu, lambda) [Pa] of body b from its scene E and nu."""
+        """Lame parameters (mu, lambda) [Pa] of body b from its current E and nu (``set_parameters``)."""
         from cosim.engines.materials import lame_parameters
 
-        return lame_parameters(self.bodies[b].E, self.bodies[b].nu, self.dim)
+        return lame_parameters(float(self._material["E"][b]), float(self._material["nu"][b]), self.dim)
+
+    def wave_speed(self) -> tuple[float, str]:
+        """The fastest elastic P-wave speed [m/s] over the bodies with their current E and nu, and its body."""
+        from cosim.engines.materials import wave_speed
+
+        speeds = [
+            wave_speed(float(self._material["E"][b]), float(self._material["nu"][b]), body.density, self.dim)
+            for b, body in enumerate(self.bodies)
+        ]
+        worst = int(np.argmax(speeds))
+        return speeds[worst], self.bodies[worst].name

@@ -170,7 +170,7 @@ def build_stepping(scene: Scene, bodies: list, requires_grad: bool, steps: int) 
             f"time.substeps: gradients need a fixed substep count and the CFL bound asks for "
             f"{grad_substeps} > time.max_substeps = {scene.time.max_substeps}; shorten the horizon or frame_dt"
         )
-    return Stepping(frame_dt, scene.time.cfl, scene.time.max_substeps, fixed or 0, grad_substeps, requires_grad, wave)
+    return Stepping(frame_dt, scene.time.cfl, scene.time.max_substeps, fixed or 0, grad_substeps, requires_grad)
 
 
 @dataclass
