@@ -188,7 +188,7 @@ class CoupledSystem:
         (default: the scene's sequences)."""
         st = self.stepping
         t0 = self.step_index * self.frame_dt
-        speed = self.mpm.max_speed() + float(np.linalg.norm(self.gravity)) * self.frame_dt
+        speed = max(self.mpm.max_speed(), self.boundary_speed()) + float(np.linalg.norm(self.gravity)) * self.frame_dt
         fixed = st.fixed or (st.grad_substeps if st.requires_grad else 0)
         if fixed:
             self._check_fixed_substeps(fixed)
@@ -310,6 +310,13 @@ class CoupledSystem:
         """Substeps so that (|v| + c) dt / dx <= cfl, c the fastest elastic wave."""
         bound = self.stepping.cfl * self.dx / (speed + self.mpm.wave_speed()[0])
         return max(1, math.ceil(self.frame_dt / bound - 1e-9))
+
+    def boundary_speed(self) -> float:
+        """[m/s] The fastest boundary surface (rigid bodies, cloth vertices) over the next frame: the
+        substep count keeps it under the CFL fraction of a cell per substep, as it does the particles."""
+        speeds = [self.rigid.surface_speed(self.frame_dt)] if self.rigid is not None else []
+        speeds += [e.surface_speed(self.frame_dt) for e in self.engines.values() if hasattr(e, "surface_speed")]
+        return max(speeds, default=0.0)
 
     def _check_fixed_substeps(self, K: int) -> None:
         """A fixed substep count was checked against the scene's materials at build; E or nu set since

@@ -1,6 +1,8 @@
 """The generic coupled system: several engines and boundary sources at once, per-body reactions,
 chained contact hooks, and gradients through all of it against central differences (float64)."""
 
+import math
+
 import numpy as np
 import pytest
 from conftest import make_scene
@@ -199,3 +201,25 @@ def test_engines_and_couplers_keep_the_contract_and_refuse_what_they_cannot_hono
         sim.mpm.step({"dt": 1e-3, "substeps": 1})
     with pytest.raises(ValueError, match="kinematic bodies take no action"):
         sim.engines["kinematic"].step({"action": np.ones(2)})
+
+
+def test_the_substep_count_keeps_a_fast_boundary_under_a_cell_per_substep():
+    """A resting block and a 0.12 m wide box spinning at 40 rad/s about its origin (its SDF box's
+    corners at about 0.19 m move at about 7.6 m/s), far from the block: the particles alone would need
+    one substep per frame, the boundary needs its surface to move at most cfl cells per substep."""
+    box = {
+        **static_box("spinner", 0.2),
+        "motion": {"type": "constant", "velocity": [0.0, 0.0], "angular_velocity": 40.0},
+    }
+    scene = make_scene(
+        steps=2,
+        time={"frame_dt": 2e-3},
+        mpm={"grid": {"cells": 48}, "gravity": [0.0, 0.0], "bodies": [thin_blob(DX, [0.0, 0.0])]},
+        rigid={"bodies": [box]},
+    )
+    sim = build_system(scene)
+    reach = sim.rigid.reach[0]
+    assert 0.15 < reach < 0.25  # half-diagonal of the box plus the SDF's padding
+    sim.step()
+    needed = math.ceil(sim.frame_dt * 40.0 * reach / (sim.stepping.cfl * sim.dx) - 1e-9)
+    assert sim.last.substeps >= needed >= 3

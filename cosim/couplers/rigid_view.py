@@ -9,6 +9,14 @@ from __future__ import annotations
 import numpy as np
 
 
+def _reach(grid) -> float:
+    """Largest distance [m] from the body origin to a corner of its SDF grid's box (bounds its surface)."""
+    lo = np.asarray(grid.origin, dtype=np.float64)
+    hi = lo + grid.spacing * (np.asarray(grid.values.shape) - 1)
+    corners = np.stack(np.meshgrid(*zip(lo, hi), indexing="ij"), axis=-1).reshape(-1, len(lo))
+    return float(np.linalg.norm(corners, axis=1).max())
+
+
 class RigidBodies:
     """Names, scene shapes (None for URDF links), SDF grids and current poses of the rigid bodies."""
 
@@ -19,6 +27,22 @@ class RigidBodies:
         self.kinematic = kinematic  # KinematicEngine or None
         self.coupler = coupler  # MPMRigidCoupler or None
         self.dim = dim
+        self.reach = [_reach(g) for g in grids]  # [m] farthest point of each body's SDF box from its origin
+
+    def surface_speed(self, frame_dt: float) -> float:
+        """[m/s] The fastest any body's surface moves over the next frame: |v| + |w| reach per body, the
+        kinematic ones' twists taken at the frame's start and end (a segment may change inside it)."""
+        twists = []
+        if self.kinematic is not None:
+            t = self.kinematic.time
+            for motion in self.kinematic.motions:
+                ends = [motion.twist(t), motion.twist(t + frame_dt)]
+                twists.append(max(ends, key=lambda vw: np.linalg.norm(vw[0]) + np.linalg.norm(vw[1])))
+        if self.coupler is not None:
+            b = self.coupler.current_bodies()
+            twists += list(zip(b.v, b.w))
+        speeds = [np.linalg.norm(v) + np.linalg.norm(w) * r for (v, w), r in zip(twists, self.reach)]
+        return float(max(speeds, default=0.0))
 
     def poses(self) -> list[tuple[np.ndarray, np.ndarray]]:
         """(position, rotation) of every body now: kinematic ones, then DART links."""

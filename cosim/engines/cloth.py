@@ -195,6 +195,10 @@ class ClothEngine(ClothAdjoint):
         """``x`` (V, 3) [m] vertex positions, ``v`` (V, 3) [m/s] velocities (copies)."""
         return {"x": self.x.copy(), "v": self.v.copy()}
 
+    def surface_speed(self, frame_dt: float) -> float:
+        """[m/s] The fastest vertex now (the MPM's substep count keeps the sheet under a cell per substep)."""
+        return float(np.linalg.norm(self.v, axis=1).max()) if len(self.v) else 0.0
+
     def set_state(self, state: dict[str, np.ndarray]) -> None:
         """Restore a ``state()``; the next step is bitwise the same."""
         V = self.mesh.n_vertices
