@@ -161,9 +161,9 @@ def cmd_optimize(args) -> int:
 
         if args.resume:
             raise InputError("--resume continues one optimisation; resume each start with its own folder OUT/start_K")
-        _load(args, precision="float64")  # says so when that is not the scene's precision
+        scene = _load(args, precision="float64")  # validates, and says so when not the scene's precision
         return optimize_starts(
-            resolve_scene(args.scene), _assignments(args), args.starts, args.perturb, args.iters, args.lr,
+            scene.name, resolve_scene(args.scene), _assignments(args), args.starts, args.perturb, args.iters, args.lr,
             args.method, args.steps, args.out, not args.no_preview, args.workers, args.address, args.quiet,
         )  # fmt: skip
     scene = _load(args, precision="float64")

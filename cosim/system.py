@@ -188,10 +188,13 @@ class CoupledSystem:
         (default: the scene's sequences)."""
         st = self.stepping
         t0 = self.step_index * self.frame_dt
-        speed = max(self.mpm.max_speed(), self.boundary_speed()) + float(np.linalg.norm(self.gravity)) * self.frame_dt
         fixed = st.fixed or (st.grad_substeps if st.requires_grad else 0)
+        speed = self.mpm.max_speed()
         if fixed:
             self._check_fixed_substeps(fixed)
+        else:
+            speed = max(speed, self.boundary_speed())  # a fixed count does not depend on it
+        speed += float(np.linalg.norm(self.gravity)) * self.frame_dt
         K = fixed or self.auto_substeps(speed)
         for attempt in range(RETRIES + 1):
             if K > st.max_substeps:

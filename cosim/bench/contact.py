@@ -139,11 +139,16 @@ def run_case(model: str, stiffness: float | None, thickness: float, steps: int) 
     return run.result()
 
 
+def _on_ray(workers: int | None, address: str | None) -> bool:
+    """Whether the runs go to Ray: more than one worker asked for, or a cluster address."""
+    return bool(address) or (workers or 1) > 1
+
+
 def run_tables(steps: int, repeat: int, workers: int | None, address: str | None) -> list[list[dict]]:
     """``repeat`` repetitions of every model x thickness: in this process, each thickness's models
     advanced in turn so that they share the machine's state (``run_table``), or with ``workers`` > 1
     or an ``address`` as Ray jobs (``cosim.scale.pool``), one per run, each on its own core(s)."""
-    if not (address or (workers or 1) > 1):
+    if not _on_ray(workers, address):
         repeats = []
         for rep in range(repeat):
             rows = [row for thickness in THICKNESSES for row in run_table(thickness, steps)]
@@ -222,11 +227,7 @@ def run_contact_bench(
         (
             f"Contact benchmark: {steps} frames of shake_container_2d on {hardware_line()}; "
             f"seconds: median of {repeat} repetitions "
-            + (
-                "in one process"
-                if not (address or (workers or 1) > 1)
-                else f"as Ray jobs on {workers or 'all'} workers"
-            )
+            + (f"as Ray jobs on {workers or 'all'} workers" if _on_ray(workers, address) else "in one process")
         ),
         "",
         "| model | k | wall | penetrated | in wall | rebound | seconds | time / grid (min-max) |",

@@ -59,6 +59,7 @@ def sweep(
 
 
 def optimize_starts(
+    scene_name: str,
     scene_path: Path,
     assignments: list[str],
     starts: int,
@@ -73,19 +74,19 @@ def optimize_starts(
     address: str | None,
     quiet: bool,
 ) -> int:
-    """``starts`` optimisations on Ray: start 0 from the scene's initial guess, start k from it moved by
+    """``starts`` optimisations on Ray of the scene ``scene_name`` at ``scene_path`` (validated by the
+    caller, with ``assignments``): start 0 from the scene's initial guess, start k from it moved by
     ``perturbation`` x each parameter's scale (seed k); keeps the best start's parameters and writes
     every start's curve (docs/outputs.md). The exit code is 3 when a start failed."""
     defaults = {"precision": "float64"}
-    scene = load_scene(scene_path, defaults, assignments)
-    out = Path(out or f"out/{scene.name}_optimize").resolve()
+    out = Path(out or f"out/{scene_name}_optimize").resolve()
     argsets = []
     for k in range(starts):
         settings = {"iterations": iterations, "lr": lr, "method": method, "steps": steps, "preview": preview}
         settings.update({"perturbation": perturbation if k else 0.0, "seed": k})
         argsets.append((str(scene_path), defaults, assignments, settings, str(out / f"start_{k}")))
     print(
-        f"optimize {scene.name}: {starts} starts on Ray (start 0: the scene's guess, others moved by {perturbation:g} x scale)"
+        f"optimize {scene_name}: {starts} starts on Ray (start 0: the scene's guess, others moved by {perturbation:g} x scale)"
     )
     results, errors = {}, {}
     with tqdm(total=starts, desc="starts", unit="start", disable=quiet) as bar:
@@ -97,7 +98,7 @@ def optimize_starts(
     if not results:
         raise SimulationError(f"every one of the {starts} starts failed (first: {errors[min(errors)]})")
     out.mkdir(parents=True, exist_ok=True)
-    write_starts(out, results, f"{scene.name}: {starts} starts")
+    write_starts(out, results, f"{scene_name}: {starts} starts")
     best = min(results, key=lambda k: results[k]["best_loss"])
     np.savez(out / "params.npz", **results[best]["best_params"])
     summary = {k: v for k, v in results[best].items() if k not in ("best_params", "written")}

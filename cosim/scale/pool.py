@@ -77,7 +77,7 @@ def run_jobs(
         remote = ray.remote(num_cpus=threads)(_Worker)
         actors = [remote.remote(threads, kernels_optimized()) for _ in range(min(workers, len(argsets)) or 1)]
         pool = ActorPool(actors)
-        tasks = [(i, args) for i, args in enumerate(argsets)]
+        tasks = list(enumerate(argsets))
         yield from pool.map_unordered(lambda actor, task: actor.run.remote(task[0], job, task[1]), tasks)
     finally:
         ray.shutdown()
