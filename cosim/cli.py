@@ -105,10 +105,10 @@ def cmd_run(args) -> int:
 
 
 def cmd_validate(args) -> int:
-    from cosim.scene.particles import body_positions  # NumPy only: validating imports neither Taichi nor DART
+    from cosim.scene.preflight import preflight  # NumPy only: validating imports neither Taichi nor DART
 
     scene = _load(args)
-    bodies = body_positions(scene)  # also checks meshes and that bodies fit the grid
+    bodies = preflight(scene)  # every check `run` makes before its first step
     n = sum(len(b) for b in bodies)
     print(
         f"{args.scene}: valid ({scene.dim}D, {len(bodies)} bodies, {n} particles, "

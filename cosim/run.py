@@ -5,11 +5,16 @@ from __future__ import annotations
 import json
 import platform
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from cosim.scene import Scene
+
+if TYPE_CHECKING:
+    from cosim.system import CoupledSystem
 
 
 def hardware_line() -> str:
@@ -143,6 +148,7 @@ def run_scene(
     progress: bool = True,
     preview: bool = True,
     save_target: bool = False,
+    after_rollout: Callable[[CoupledSystem], None] | None = None,
 ) -> dict:
     """Run ``scene`` for ``steps`` macro steps and write the outputs to ``out_dir``.
 
@@ -150,14 +156,13 @@ def run_scene(
     docs/outputs.md) and returns the metrics; with ``save_target`` also ``target.npz``,
     every body's and cloth's final positions ``x_<name>`` [m] (a chamfer loss's
     ``points: {rollout: ...}``). ``out_dir`` None writes nothing (a sweep's case: metrics only).
+    ``after_rollout(sim)`` is called with the system after its last step, before the metrics
+    (the fuzz benchmark checks the final state there).
     """
     from tqdm import tqdm
 
     from cosim.scene.build import build_system
 
-    if out_dir is not None:
-        out_dir = Path(out_dir)
-        out_dir.mkdir(parents=True, exist_ok=True)
     t_build = time.perf_counter()
     sim = build_system(scene, requires_grad=False, steps=steps)
     build_s = time.perf_counter() - t_build
@@ -176,6 +181,11 @@ def run_scene(
     sim.rollout(on_step=on_step)
     wall = time.perf_counter() - t0
     bar.close()
+    if after_rollout is not None:
+        after_rollout(sim)
+    if out_dir is not None:  # made only now: a scene refused at build or a run stopped writes nothing
+        out_dir = Path(out_dir)
+        out_dir.mkdir(parents=True, exist_ok=True)
     if save_target and out_dir is not None:
         final = sim.state()
         targets = {f"x_{name}": final["mpm"]["x"][sl] for name, sl in sim.slices.items()}

@@ -7,6 +7,7 @@ of the spacing) breaks the lattice's symmetry reproducibly.
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -14,9 +15,20 @@ import numpy as np
 from cosim.engines.meshes import load_mesh, require_watertight
 from cosim.errors import SceneError
 
+# The most lattice points one shape may sample: ~2 GB of positions in float64 3D, and about
+# 20 GB of MPM state (x, v, F, C, material per particle) were they all kept.
+MAX_LATTICE_POINTS = 10**8
 
-def lattice(lo: np.ndarray, hi: np.ndarray, spacing: float) -> np.ndarray:
-    """Cell-centred lattice points covering the box [lo, hi]."""
+
+def lattice(lo: np.ndarray, hi: np.ndarray, spacing: float, key: str = "shape") -> np.ndarray:
+    """Cell-centred lattice points covering the box [lo, hi]; refuses more than ``MAX_LATTICE_POINTS``
+    (``key`` names the shape in the error)."""
+    count = math.prod(max(0, math.ceil((b - a) / spacing)) for a, b in zip(lo, hi))
+    if count > MAX_LATTICE_POINTS:
+        raise SceneError(
+            f"{key}: sampling this shape at spacing {spacing:g} m takes {count:.3g} lattice points, more than "
+            f"{MAX_LATTICE_POINTS:.0e}; use a coarser grid (dx) or spacing, or a smaller shape"
+        )
     axes = [np.arange(a + 0.5 * spacing, b, spacing) for a, b in zip(lo, hi)]
     grids = np.meshgrid(*axes, indexing="ij")
     return np.stack([g.ravel() for g in grids], axis=-1)
@@ -58,17 +70,17 @@ def sample_shape(
     center = np.asarray(shape.center, dtype=np.float64)
     if shape.type == "box":
         half = 0.5 * np.asarray(shape.size)
-        pts = lattice(center - half, center + half, spacing)
+        pts = lattice(center - half, center + half, spacing, key)
     elif shape.type == "sphere":
-        pts = lattice(center - shape.radius, center + shape.radius, spacing)
+        pts = lattice(center - shape.radius, center + shape.radius, spacing, key)
         pts = pts[inside_sphere(pts, center, shape.radius)]
     elif shape.type == "cylinder":
         ext = np.full(dim, max(shape.radius, 0.5 * shape.height))
-        pts = lattice(center - ext, center + ext, spacing)
+        pts = lattice(center - ext, center + ext, spacing, key)
         pts = pts[inside_cylinder(pts, center, shape.radius, shape.height, shape.axis)]
     elif shape.type == "mesh":
         mesh = load_volume_mesh((source_dir / shape.file).resolve(), shape.scale, center, key)
-        pts = lattice(mesh.bounds[0], mesh.bounds[1], spacing)
+        pts = lattice(mesh.bounds[0], mesh.bounds[1], spacing, key)
         pts = pts[mesh.contains(pts)]
     else:  # the schema admits no other type
         raise SceneError(f"{key}.type: unknown shape '{shape.type}'")

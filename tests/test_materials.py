@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 import taichi as ti
 
-from cosim.engines.materials import Liquid, Plastic, corotated_kirchhoff, lame_parameters, polar_rotation
+from cosim.engines.materials import Liquid, Plastic, corotated_kirchhoff, polar_rotation
+from cosim.engines.moduli import lame_parameters
 
 
 def random_deformations(n, dim, lo, hi, seed=0):

@@ -93,18 +93,18 @@ def test_mesh_in_2d_is_rejected():
     assert "needs dim 3" in error_of(data)
 
 
-def test_body_outside_grid_is_rejected_at_build():
-    from cosim.scene.build import build_bodies
+def test_body_outside_grid_is_rejected_when_sampled():
+    from cosim.scene.particles import body_positions
 
     scene = parse_scene(with_body(shape={"type": "box", "center": [0.05, 0.5], "size": [0.2, 0.2]}), ROOT)
     with pytest.raises(SceneError, match=r"mpm.bodies\[0\] \('block'\): \d+ particles lie outside"):
-        build_bodies(scene)
+        body_positions(scene)
 
 
 def test_non_watertight_mesh_is_rejected(tmp_path):
     import trimesh
 
-    from cosim.scene.build import build_bodies
+    from cosim.scene.particles import body_positions
 
     box = trimesh.creation.box(extents=[0.2, 0.2, 0.2])
     open_box = trimesh.Trimesh(box.vertices, box.faces[:-2], process=False)  # drop one side
@@ -113,39 +113,40 @@ def test_non_watertight_mesh_is_rejected(tmp_path):
     data["mpm"]["bodies"][0]["shape"] = {"type": "mesh", "file": "open.obj", "center": [0.5, 0.5, 0.5]}
     scene = parse_scene(data, tmp_path)
     with pytest.raises(SceneError, match="not watertight"):
-        build_bodies(scene)
+        body_positions(scene)
 
 
 def test_mesh_sampling_fills_its_volume(tmp_path):
     """Particles x spacing^3 approximate the mesh volume (lattice error ~ surface x spacing)."""
     import trimesh
 
-    from cosim.scene.build import build_bodies
+    from cosim.scene.particles import body_positions
 
     ball = trimesh.creation.icosphere(subdivisions=3, radius=0.15)
     ball.export(tmp_path / "ball.stl")
     data = scene_dict(dim=3, mpm={"grid": {"cells": 32}, "bodies": [dict(scene_dict()["mpm"]["bodies"][0])]})
     data["mpm"]["bodies"][0]["shape"] = {"type": "mesh", "file": "ball.stl", "center": [0.5, 0.5, 0.5]}
-    body = build_bodies(parse_scene(data, tmp_path))[0]
-    sampled = body.n * body.particle_volume
+    scene = parse_scene(data, tmp_path)
+    points = body_positions(scene)[0]
+    sampled = len(points) * (0.5 * scene.dx) ** 3  # each particle stands for a lattice cell of dx / 2
     assert abs(sampled - ball.volume) / ball.volume < 0.05
-    assert np.allclose(body.positions.mean(axis=0), 0.5, atol=1e-3)
+    assert np.allclose(points.mean(axis=0), 0.5, atol=1e-3)
 
 
 def test_sampling_is_seeded():
-    from cosim.scene.build import build_bodies
+    from cosim.scene.particles import body_positions
 
-    a = build_bodies(
+    a = body_positions(
         make_scene(seed=3, mpm={**scene_dict()["mpm"], "bodies": [dict(scene_dict()["mpm"]["bodies"][0], jitter=0.4)]})
     )
-    b = build_bodies(
+    b = body_positions(
         make_scene(seed=3, mpm={**scene_dict()["mpm"], "bodies": [dict(scene_dict()["mpm"]["bodies"][0], jitter=0.4)]})
     )
-    c = build_bodies(
+    c = body_positions(
         make_scene(seed=4, mpm={**scene_dict()["mpm"], "bodies": [dict(scene_dict()["mpm"]["bodies"][0], jitter=0.4)]})
     )
-    assert np.array_equal(a[0].positions, b[0].positions)
-    assert not np.array_equal(a[0].positions, c[0].positions)
+    assert np.array_equal(a[0], b[0])
+    assert not np.array_equal(a[0], c[0])
 
 
 def test_cli_validate_bad_scene_exit_2_without_traceback(tmp_path):

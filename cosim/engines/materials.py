@@ -157,16 +157,3 @@ class Liquid:
 
 
 MATERIALS = {cls.name: cls for cls in (Elastic, Plastic, Liquid)}
-
-
-def lame_parameters(E: float, nu: float, dim: int) -> tuple[float, float]:
-    """Lame parameters (mu, lambda) [Pa] from Young's modulus E [Pa] and Poisson's ratio."""
-    mu = E / (2.0 * (1.0 + nu))
-    lam = E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
-    return mu, lam
-
-
-def wave_speed(E: float, nu: float, density: float, dim: int) -> float:
-    """P-wave speed sqrt((lam + 2 mu) / rho) [m/s], the explicit time-step bound's speed."""
-    mu, lam = lame_parameters(E, nu, dim)
-    return ((lam + 2.0 * mu) / density) ** 0.5

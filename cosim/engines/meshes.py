@@ -37,7 +37,7 @@ def load_mesh(
     except Exception as exc:  # trimesh raises many kinds for unreadable files
         raise error(f"{where}cannot read mesh {path}: {exc}; export it as OBJ/STL") from exc
     if len(mesh.faces) == 0:
-        raise error(f"{where}mesh {path} has no triangles")
+        raise error(f"{where}mesh {path} has no triangles (empty, or not a mesh file); export it as OBJ/STL with faces")
     mesh.apply_transform(np.diag([*np.broadcast_to(np.asarray(scale, dtype=np.float64), 3), 1.0]))
     return mesh
 

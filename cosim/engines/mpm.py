@@ -265,13 +265,13 @@ class MPMEngine(MPMAdjointKernels):
 
     def lame(self, b: int) -> tuple[float, float]:
         """Lame parameters (mu, lambda) [Pa] of body b from its current E and nu (``set_parameters``)."""
-        from cosim.engines.materials import lame_parameters
+        from cosim.engines.moduli import lame_parameters
 
         return lame_parameters(float(self._material["E"][b]), float(self._material["nu"][b]), self.dim)
 
     def wave_speed(self) -> tuple[float, str]:
         """The fastest elastic P-wave speed [m/s] over the bodies with their current E and nu, and its body."""
-        from cosim.engines.materials import wave_speed
+        from cosim.engines.moduli import wave_speed
 
         speeds = [
             wave_speed(float(self._material["E"][b]), float(self._material["nu"][b]), body.density, self.dim)

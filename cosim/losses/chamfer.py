@@ -10,6 +10,7 @@ target's tree is built once, the points' tree once per call, never an O(N M) loo
 
 from __future__ import annotations
 
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -53,7 +54,13 @@ def target_points(spec, body: str, dim: int, dx: float, seed: int, source_dir: P
         what = "file" if spec.file else "rollout"
         hint = "" if spec.file else " (`cosim run SCENE --save-target` writes OUT/target.npz)"
         raise SceneError(f"{key}.{what}: no such file: {path}{hint}")
-    data = np.load(path, allow_pickle=False)
+    try:
+        data = np.load(path, allow_pickle=False)
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile):  # not a .npy / .npz, or a pickle
+        what = "file" if spec.file else "rollout"
+        raise SceneError(
+            f"{key}.{what}: cannot read {path}: not a .npy or .npz file of numbers; save the points with numpy.save"
+        ) from None
     if isinstance(data, np.ndarray):
         points = data
     else:

@@ -198,8 +198,7 @@ def build_articulated(scene, dx: float) -> Articulated:
     gravity = _lift(scene.gravity, dim)
     engine = RigidEngine(specs, scene.time.frame_dt, gravity=gravity, collision=spec.collision)
     coupled, names, grids = [], [], []
-    for i, skel in enumerate(spec.skeletons):
-        _check_link_names(engine, skel, f"articulated.skeletons[{i}]")
+    for skel in spec.skeletons:
         for i, full in enumerate(engine.body_names):
             sk, link = full.split("/", 1)
             if sk != skel.name or not _is_coupled(skel, link):
@@ -217,15 +216,6 @@ def build_articulated(scene, dx: float) -> Articulated:
             grids.append(grid)
     n_segments = math.ceil(scene.steps / spec.actions.hold)
     return Articulated(engine, coupled, names, grids, n_segments, spec.actions.hold)
-
-
-def _check_link_names(engine, skel, key: str) -> None:
-    """URDF links named in ``couple`` and ``contact_shapes`` exist (a typo would silently drop contact)."""
-    links = [full.split("/", 1)[1] for full in engine.body_names if full.split("/", 1)[0] == skel.name]
-    named = (list(skel.couple) if isinstance(skel.couple, list) else []) + list(skel.contact_shapes)
-    unknown = sorted(set(named) - set(links))
-    if unknown:
-        raise SceneError(f"{key}: no links named {unknown} in the URDF; its links: {links}")
 
 
 def _is_coupled(skel, link: str) -> bool:

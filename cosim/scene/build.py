@@ -15,17 +15,18 @@ import numpy as np
 
 from cosim.engines import so3
 from cosim.errors import SceneError
-from cosim.scene.particles import body_positions
+from cosim.scene.preflight import control_indices, preflight
 from cosim.scene.schema import Scene
 from cosim.system import Control, CoupledSystem, Stepping
 
 
-def build_bodies(scene: Scene):
-    """Every body of the scene as an ``mpm.ParticleBody``: particles from ``body_positions``, with material."""
+def build_bodies(scene: Scene, positions: list[np.ndarray]):
+    """Every body of the scene as an ``mpm.ParticleBody``: its particles ``positions`` [m] (from
+    ``body_positions``), with its material."""
     from cosim.engines.mpm import ParticleBody
 
     bodies = []
-    for spec, pts in zip(scene.mpm.bodies, body_positions(scene)):
+    for spec, pts in zip(scene.mpm.bodies, positions):
         spacing = spec.spacing or 0.5 * scene.dx
         vel = np.zeros_like(pts) + (np.asarray(spec.velocity) if spec.velocity is not None else 0.0)
         m = spec.material
@@ -54,7 +55,7 @@ def hydrostatic_deformation(pts: np.ndarray, spacing: float, material, gravity) 
     The pressure law sigma = K (J - 1) I makes the Cauchy pressure
     p = K (1 - J); depth is measured along gravity from the body's top.
     """
-    from cosim.engines.materials import lame_parameters
+    from cosim.engines.moduli import lame_parameters
 
     dim = pts.shape[1]
     g = np.asarray(gravity, dtype=np.float64)
@@ -70,16 +71,12 @@ def hydrostatic_deformation(pts: np.ndarray, spacing: float, material, gravity) 
 
 
 def build_controls(scene: Scene, slices: dict[str, slice], x0: np.ndarray) -> list[Control]:
+    """The impulse controls on particles of ``x0`` (all bodies' positions; ``preflight`` checked
+    that each region selects some)."""
     controls = []
-    for i, spec in enumerate(scene.controls):
+    for spec in scene.controls:
         sl = slices[spec.body]
-        idx = np.arange(sl.start, sl.stop)
-        if spec.region is not None:
-            pts = x0[idx]
-            keep = np.all((pts >= spec.region.min) & (pts <= spec.region.max), axis=1)
-            idx = idx[keep]
-        if len(idx) == 0:
-            raise SceneError(f"controls[{i}].region: selects no particle of body '{spec.body}'")
+        idx = sl.start + control_indices(spec, x0[sl])
         initial = np.zeros(scene.dim) if spec.impulse is None else np.asarray(spec.impulse, float)
         controls.append(Control(spec.body, idx, initial))
     return controls
@@ -118,7 +115,7 @@ def build_system(scene: Scene, requires_grad: bool = False, steps: int | None = 
     from cosim.engines.mpm import MPMConfig, MPMEngine
 
     steps = steps or scene.steps
-    bodies = build_bodies(scene)
+    bodies = build_bodies(scene, preflight(scene))
     stepping = build_stepping(scene, bodies, requires_grad, steps)
     cfg = MPMConfig(
         dim=scene.dim,
@@ -149,20 +146,11 @@ def build_system(scene: Scene, requires_grad: bool = False, steps: int | None = 
 
 
 def build_stepping(scene: Scene, bodies: list, requires_grad: bool, steps: int) -> Stepping:
-    """Substep settings; refuses fixed substeps above the explicit stability bound dx / c."""
+    """Substep settings (``preflight`` checked a fixed count against the stability bound); with
+    ``requires_grad`` a fixed count for the whole horizon, refused above ``time.max_substeps``."""
     frame_dt, dx = scene.time.frame_dt, scene.dx
     wave = max(_wave_speed(b, scene.dim) for b in bodies)
     fixed = scene.time.substeps
-    if fixed:
-        dt = frame_dt / fixed
-        if dt * wave / dx > 1.0:
-            worst = max(bodies, key=lambda b: _wave_speed(b, scene.dim))
-            need = math.ceil(frame_dt * wave / (scene.time.cfl * dx))
-            raise SceneError(
-                f"time.substeps: {fixed} substeps give dt = {dt:.3g} s, above the explicit stability bound "
-                f"dx / c = {dx / wave:.3g} s of body '{worst.name}' (elastic wave speed c = {wave:.3g} m/s "
-                f"from its E); use at least {need} substeps, or 'auto'"
-            )
     speed = max(np.abs(b.velocities).max() for b in bodies) + np.linalg.norm(scene.gravity) * frame_dt * steps
     grad_substeps = fixed or max(1, math.ceil(frame_dt / (scene.time.cfl * dx / (speed + wave)) - 1e-9))
     if grad_substeps > scene.time.max_substeps and requires_grad:
@@ -327,6 +315,6 @@ def _check_start_outside_rigid(rigid, x: np.ndarray, dx: float) -> None:
 
 
 def _wave_speed(body, dim: int) -> float:
-    from cosim.engines.materials import wave_speed
+    from cosim.engines.moduli import wave_speed
 
     return wave_speed(body.E, body.nu, body.density, dim)

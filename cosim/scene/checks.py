@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 
 from cosim.engines.shapes import RIGID_SHAPE_KINDS, required_keys
+from cosim.engines.urdf_tree import UrdfTree, read_urdf_tree
 from cosim.errors import SceneError
 from cosim.scene.schema import BoxShape, CylinderShape, MeshShape, Scene
 from cosim.scene.shipped import resolve_asset
@@ -203,6 +204,11 @@ def _urdf_problems(key: str, skel, scene: Scene) -> list[str]:
         path = resolve_asset(skel.urdf, scene.source_dir, f"{key}.urdf")
         if not path.is_file():
             problems.append(f"{key}.urdf: file not found: {path}")
+        else:
+            try:
+                problems += _urdf_name_problems(key, skel, read_urdf_tree(path, SceneError))
+            except SceneError as exc:
+                problems.append(f"{key}.urdf: {exc}")
         for name, folder in skel.package_dirs.items():
             found = resolve_asset(folder, scene.source_dir, f"{key}.package_dirs.{name}")
             if not found.is_dir():
@@ -219,6 +225,22 @@ def _urdf_problems(key: str, skel, scene: Scene) -> list[str]:
                 f"{key}.contact_shapes.{link}.shape.type: use a primitive (box, sphere, cylinder, capsule, glass)"
             )
     return problems
+
+
+def _urdf_name_problems(key: str, skel, tree: UrdfTree) -> list[str]:
+    """Joints and links the skeleton's keys name exist in its URDF (a typo would silently drop
+    a control or a contact)."""
+    joints, links = tree.joint_names, list(tree.links)
+    named = [("controls", j, joints) for j in skel.controls] + [
+        ("initial_positions", j, joints) for j in skel.initial_positions
+    ]
+    named += [("contact_shapes", lk, links) for lk in skel.contact_shapes]
+    named += [("couple", lk, links) for lk in (skel.couple if isinstance(skel.couple, list) else [])]
+    return [
+        f"{key}.{section}.{name}: the URDF has no {'joint' if known is joints else 'link'} '{name}'; it has {known}"
+        for section, name, known in named
+        if name not in known
+    ]
 
 
 def _links_problems(key: str, skel, scene: Scene) -> list[str]:

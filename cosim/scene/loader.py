@@ -44,9 +44,19 @@ def load_scene(path: str | Path, overrides: dict | None = None, assignments: Seq
     try:
         data = yaml.safe_load(path.read_text())
     except yaml.YAMLError as exc:
-        raise SceneError(f"{path}: not valid YAML: {exc}") from None
+        raise SceneError(f"{path}: not valid YAML: {yaml_problem(exc)}") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise SceneError(f"{path}: cannot read the scene file: {exc}") from None
     if isinstance(data, dict) and overrides:
         data = {**data, **overrides}
     if isinstance(data, dict) and assignments:
         data = apply_assignments(data, list(assignments))
     return parse_scene(data, path.parent, origin=str(path))
+
+
+def yaml_problem(exc: yaml.YAMLError) -> str:
+    """One line: where the YAML parser stopped (line, column, 1-based) and why."""
+    mark = getattr(exc, "problem_mark", None)
+    problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+    where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
+    return f"{where}{problem}; fix the syntax there"

@@ -1,0 +1,110 @@
+"""Every check `cosim run` makes before its first step, in NumPy (no Taichi, no DART).
+
+``cosim validate`` runs it, and ``build_system`` runs the same function before building anything,
+so whatever `run` refuses at the start, `validate` refuses with the same message: the grid fits in
+memory, every body samples into the grid, control regions select particles, a fixed substep count
+is below the explicit stability bound and an automatic one within ``time.max_substeps``, and a
+loss's target points can be read.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+
+import numpy as np
+
+from cosim.engines.moduli import wave_speed
+from cosim.errors import SceneError
+from cosim.scene.particles import body_positions
+from cosim.scene.schema import Scene
+
+# Share of the machine's memory the forward run's grid may take (the particles, tape and
+# the rest of the process need the remainder).
+GRID_MEMORY_SHARE = 0.5
+
+
+def preflight(scene: Scene) -> list[np.ndarray]:
+    """Run the start-of-run checks; return every body's particle positions [m] (``body_positions``)."""
+    check_grid_memory(scene)
+    bodies = body_positions(scene)
+    check_control_regions(scene, bodies)
+    check_substeps(scene, bodies)
+    check_loss_targets(scene)
+    return bodies
+
+
+def machine_memory() -> int:
+    """Physical memory [bytes] of this machine."""
+    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+
+
+def check_grid_memory(scene: Scene) -> None:
+    """The grid's nodes (velocity and mass per node, in the scene's precision) fit in memory."""
+    nodes = math.prod(c + 1 for c in scene.cells)
+    need = nodes * (scene.dim + 1) * (8 if scene.precision == "float64" else 4)
+    have = machine_memory()
+    if need > GRID_MEMORY_SHARE * have:
+        raise SceneError(
+            f"mpm.grid.cells: {scene.cells} is {nodes:.3g} grid nodes, {need / 2**30:.3g} GiB for the grid "
+            f"alone, more than half this machine's {have / 2**30:.3g} GiB; use fewer cells (a larger dx)"
+        )
+
+
+def control_indices(spec, positions: np.ndarray) -> np.ndarray:
+    """Indices into ``positions`` (one body's particles) a ``ControlSpec`` acts on: all, or those
+    in its region at the start."""
+    if spec.region is None:
+        return np.arange(len(positions))
+    lo, hi = np.asarray(spec.region.min), np.asarray(spec.region.max)
+    return np.flatnonzero(np.all((positions >= lo) & (positions <= hi), axis=1))
+
+
+def check_control_regions(scene: Scene, bodies: list[np.ndarray]) -> None:
+    by_name = {spec.name: pts for spec, pts in zip(scene.mpm.bodies, bodies)}
+    for i, ctl in enumerate(scene.controls):
+        if len(control_indices(ctl, by_name[ctl.body])) == 0:
+            raise SceneError(
+                f"controls[{i}].region: selects no particle of body '{ctl.body}'; "
+                "move the box over the body (min and max in metres)"
+            )
+
+
+def check_substeps(scene: Scene, bodies: list[np.ndarray]) -> None:
+    """A fixed count keeps dt below dx / c; an automatic count for the first frame (initial speeds,
+    one frame of gravity) stays within ``time.max_substeps``."""
+    frame_dt, dx, time = scene.time.frame_dt, scene.dx, scene.time
+    fall = float(np.linalg.norm(scene.gravity)) * frame_dt
+    worst = None  # (substeps needed, body index, wave speed, initial speed)
+    for i, spec in enumerate(scene.mpm.bodies):
+        m = spec.material
+        c = wave_speed(m.E, m.nu, m.density, scene.dim)
+        v = float(np.linalg.norm(spec.velocity)) if spec.velocity is not None else 0.0
+        need = frame_dt * (c + v + fall) / (time.cfl * dx)
+        if time.substeps and frame_dt / time.substeps * c > dx:
+            raise SceneError(
+                f"time.substeps: {time.substeps} substeps give dt = {frame_dt / time.substeps:.3g} s, above the "
+                f"explicit stability bound dx / c = {dx / c:.3g} s of body '{spec.name}' (elastic wave speed "
+                f"c = {c:.3g} m/s from its E); use at least {math.ceil(need)} substeps, or 'auto'"
+            )
+        if worst is None or need > worst[0]:
+            worst = (need, i, c, v)
+    need, i, c, v = worst
+    if not time.substeps and need > time.max_substeps:
+        key, what = (f"mpm.bodies[{i}].material.E", "lower E") if c >= v else (f"mpm.bodies[{i}].velocity", "slow it")
+        raise SceneError(
+            f"{key}: body '{scene.mpm.bodies[i].name}' needs {need:.3g} substeps per frame for the CFL bound "
+            f"(wave speed {c:.3g} m/s, initial speed {v:.3g} m/s), more than time.max_substeps = "
+            f"{time.max_substeps}; {what}, shorten time.frame_dt or raise time.max_substeps"
+        )
+
+
+def check_loss_targets(scene: Scene) -> None:
+    """Each Chamfer term's target points can be read and have the scene's dimension."""
+    from cosim.losses.chamfer import target_points
+
+    terms = scene.loss.all_terms()
+    for i, term in enumerate(terms):
+        if term.type == "chamfer" and term.points is not None:
+            key = "loss" if not scene.loss.terms else f"loss.terms[{i}]"
+            target_points(term.points, term.body, scene.dim, scene.dx, scene.seed, scene.source_dir, f"{key}.points")
