@@ -30,16 +30,23 @@ def liquid_energy(F: np.ndarray, volume: float, bulk: float) -> float:
     return float(volume * 0.5 * bulk * np.sum((J - 1.0) ** 2))
 
 
-def energies(engine, state: dict[str, np.ndarray], gravity) -> dict[str, float]:
-    """Kinetic, gravitational and strain energy of the whole MPM state [J]."""
-    strain = 0.0
+def body_energies(engine, state: dict[str, np.ndarray], gravity) -> dict[str, dict[str, float]]:
+    """Per body {name: {kinetic, gravity, strain, total}} of the MPM state [J]."""
+    out = {}
     for b, (body, (lo, hi)) in enumerate(zip(engine.bodies, engine.ranges)):
         mu, lam = engine.lame(b)  # the current E and nu, after any set_parameters
-        F = state["F"][lo:hi]
+        F, mass = state["F"][lo:hi], engine.mass[lo:hi]
         if body.material == "liquid":
-            strain += liquid_energy(F, body.particle_volume, lam + 2.0 * mu / engine.dim)
+            strain = liquid_energy(F, body.particle_volume, lam + 2.0 * mu / engine.dim)
         else:
-            strain += corotated_energy(F, body.particle_volume, mu, lam)
-    kin = kinetic_energy(engine.mass, state["v"])
-    pot = gravity_potential(engine.mass, state["x"], gravity)
-    return {"kinetic": kin, "gravity": pot, "strain": strain, "total": kin + pot + strain}
+            strain = corotated_energy(F, body.particle_volume, mu, lam)
+        kin = kinetic_energy(mass, state["v"][lo:hi])
+        pot = gravity_potential(mass, state["x"][lo:hi], gravity)
+        out[body.name] = {"kinetic": kin, "gravity": pot, "strain": strain, "total": kin + pot + strain}
+    return out
+
+
+def energies(engine, state: dict[str, np.ndarray], gravity) -> dict[str, float]:
+    """Kinetic, gravitational and strain energy of the whole MPM state [J]."""
+    per_body = body_energies(engine, state, gravity).values()
+    return {k: sum(e[k] for e in per_body) for k in ("kinetic", "gravity", "strain", "total")}

@@ -210,7 +210,14 @@ def run_scene(
         "particle_substeps_per_s": sim.mpm.n_particles * sum(substeps) / max(wall, 1e-12),
         "energy_initial": recorder.energy[0],
         "energy_final": recorder.energy[-1],
+        "energy_budget": {  # cosim.conservation: the runner's check, every 10 steps
+            "work_done_J": sim.conservation.work,
+            "max_excess": sim.conservation.excess,
+        },
     }
+    if sim.conservation.liquids:  # sum V0 det F of the liquids over its start, lowest and highest seen
+        low, high = sim.conservation.volume_ratio
+        metrics["liquid_volume_ratio"] = {"min": low, "max": high}
     if sim.rigid is not None:
         metrics["contact_model"] = scene.contact.model
         x = sim.mpm.state()["x"]

@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from cosim.conservation import Conservation, control_work
 from cosim.engines.contract import add_states
 from cosim.errors import SimulationError
 
@@ -132,6 +133,7 @@ class CoupledSystem:
         self.scene = scene  # the scene it was built from, if any (the default loss and reports read it)
         self.rigid = rigid  # cosim.couplers.rigid_view.RigidBodies: names, poses, counts of the rigid bodies
         self.initial = self.state()
+        self.conservation = Conservation(mpm, self.gravity, self.domain)
 
     # ------------------------------------------------------------ state of every engine
     def state(self) -> dict[str, dict[str, np.ndarray]]:
@@ -231,6 +233,7 @@ class CoupledSystem:
             self.mpm.set_state(mpm_record.state)
             K *= 2
         self._check_domain(after)
+        self._account_energy(mpm_record, boundaries, outputs["reactions"], after)
         forces: dict[str, Any] = {}
         with self._timed("couplers"):
             for c in self.couplers:
@@ -339,6 +342,18 @@ class CoupledSystem:
     def _per_body(self, values: np.ndarray):
         for name, sl in self.slices.items():
             yield name, values[sl]
+
+    def _account_energy(self, record, boundaries: dict, reactions: dict, after: dict[str, np.ndarray]) -> None:
+        """The work the boundaries and controls did on the material this step, and the energy check
+        (``cosim.conservation``)."""
+        cons = self.conservation
+        if not cons.begin_step(self.step_index, record.state):
+            return
+        for name, states in boundaries.items():
+            cons.add_work(self.mpm.boundaries[name].work(states, reactions[name]))
+        if record.impulse is not None:
+            cons.add_work(control_work(record.impulse, record.state["v"], self.mpm.mass))
+        cons.end_step(self.step_index, after)
 
     def _check_finite(self, state: dict[str, np.ndarray]) -> None:
         names = {"x": "position", "v": "velocity", "F": "deformation gradient", "C": "affine velocity"}

@@ -133,6 +133,16 @@ class RigidBoundaries:
             for i in ti.static(range(self.wdim)):
                 angular[s, b, i] = self.angular_impulse[s, b][i]
 
+    @staticmethod
+    def work(states: dict[str, np.ndarray], reactions: dict[str, np.ndarray]) -> float:
+        """[J] Work the bodies did on the material over a macro step: -sum_k (J_k . v_k + L_k . w_k),
+        exact for a rigid body's velocity field (twists at each substep's start)."""
+        K = len(reactions["impulse"])
+        return -float(
+            np.sum(reactions["impulse"] * states["vel"][:K])
+            + np.sum(reactions["angular_impulse"] * states["omega"][:K])
+        )
+
     def reactions(self, K: int) -> dict[str, np.ndarray]:
         """Reactions of substeps 0..K-1: impulse (K, n, d) [N s], angular_impulse (K, n, 1|3) about pos."""
         impulse = np.zeros((K, self.n, self.dim), dtype=self.real)

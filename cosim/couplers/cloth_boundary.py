@@ -282,6 +282,12 @@ class ClothBoundary:
         self.tracer.trace(src, s, first=s == 0, record=True)
         self._blend(src, s % self.slots)
 
+    @staticmethod
+    def work(states: dict, reactions: dict) -> float:
+        """[J] Work the cloth did on the material over a macro step: -sum impulse . v over its vertices
+        (their velocities are held over the step)."""
+        return -float(np.sum(reactions["impulse"] * np.asarray(states["v"])))
+
     def reactions(self, K: int) -> dict:
         """{"impulse": (V, 3) [N s] over the macro step, "tracking": the state after its last substep}."""
         self.tracer.trace(self.engine.slot, K, first=False, record=False)  # the last substep's motion
