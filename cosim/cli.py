@@ -94,6 +94,9 @@ def cmd_run(args) -> int:
     if "particles_inside_rigid" in m:
         inside = ", ".join(f"{k}: {v}" for k, v in m["particles_inside_rigid"].items())
         print(f"contact model {m['contact_model']}: particles inside rigid bodies at the end: {inside}")
+    if m.get("particles_passed_through"):
+        through = ", ".join(f"{k}: {v}" for k, v in m["particles_passed_through"].items())
+        print(f"particles that went through rigid bodies (body/rigid body): {through}")
     for skeleton, q in m.get("joint_positions", {}).items():
         print(f"skeleton {skeleton}: joint positions {np.round(q, 4).tolist()}")
     if "particles_held" in m:

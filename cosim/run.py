@@ -222,6 +222,7 @@ def run_scene(
         metrics["contact_model"] = scene.contact.model
         x = sim.mpm.state()["x"]
         metrics["particles_inside_rigid"] = sim.rigid.particles_inside(x)
+        metrics["particles_passed_through"] = dict(sim.passed_through)  # "body/rigid body": count, whole run
         held = sim.rigid.particles_held(x)
         if held:
             metrics["particles_held"] = held

@@ -28,10 +28,12 @@ from typing import Any
 import numpy as np
 
 from cosim.conservation import Conservation, control_work
+from cosim.couplers.tunnelling import TunnelWatch
 from cosim.engines.contract import add_states
 from cosim.errors import SimulationError
 
 RETRIES = 4  # auto substeps: how often a step is redone with twice the substeps
+TUNNEL_SHARE, TUNNEL_MIN = 0.01, 10  # particles through a rigid body in one step that stop the run
 
 
 @dataclass
@@ -134,6 +136,8 @@ class CoupledSystem:
         self.rigid = rigid  # cosim.couplers.rigid_view.RigidBodies: names, poses, counts of the rigid bodies
         self.initial = self.state()
         self.conservation = Conservation(mpm, self.gravity, self.domain)
+        self.passed_through: dict[str, int] = {}  # "body/rigid body": particles that went through it
+        self.tunnels = TunnelWatch(rigid, mpm.n_particles, 0.25 * self.dx) if rigid is not None else None
 
     # ------------------------------------------------------------ state of every engine
     def state(self) -> dict[str, dict[str, np.ndarray]]:
@@ -198,6 +202,7 @@ class CoupledSystem:
             speed = max(speed, self.boundary_speed())  # a fixed count does not depend on it
         speed += float(np.linalg.norm(self.gravity)) * self.frame_dt
         K = fixed or self.auto_substeps(speed)
+        poses = self.rigid.poses() if self.rigid is not None else None
         for attempt in range(RETRIES + 1):
             if K > st.max_substeps:
                 raise SimulationError(
@@ -233,7 +238,12 @@ class CoupledSystem:
             self.mpm.set_state(mpm_record.state)
             K *= 2
         self._check_domain(after)
-        self._account_energy(mpm_record, boundaries, outputs["reactions"], after)
+        tracked = self.conservation.begin_step(self.step_index, mpm_record.state)  # not a replay
+        if tracked and self.step_index == 0 and self.tunnels is not None:
+            self.tunnels.reset()
+            self.passed_through = {}
+        if tracked:
+            self._account_energy(mpm_record, boundaries, outputs["reactions"], after)
         forces: dict[str, Any] = {}
         with self._timed("couplers"):
             for c in self.couplers:
@@ -250,6 +260,8 @@ class CoupledSystem:
                 if target in stepped:
                     raise RuntimeError(f"engine '{name}' hands forces to '{target}', which steps before it")
                 forces[target] = f if forces.get(target) is None else forces[target] + f
+        if poses is not None and tracked:  # the bodies have moved too: their poses now end the step
+            self._check_tunnelling(mpm_record.state["x"], poses, after["x"])
         self.max_cfl = max(self.max_cfl, cfl)
         self.step_index += 1
         self.last = StepRecord(t0, mpm_record, engine_records, coupler_records, {"reactions": outputs["reactions"]})
@@ -347,13 +359,35 @@ class CoupledSystem:
         """The work the boundaries and controls did on the material this step, and the energy check
         (``cosim.conservation``)."""
         cons = self.conservation
-        if not cons.begin_step(self.step_index, record.state):
-            return
         for name, states in boundaries.items():
             cons.add_work(self.mpm.boundaries[name].work(states, reactions[name]))
         if record.impulse is not None:
             cons.add_work(control_work(record.impulse, record.state["v"], self.mpm.mass))
         cons.end_step(self.step_index, after)
+
+    def _check_tunnelling(self, x0: np.ndarray, poses0: list, x1: np.ndarray) -> None:
+        """Count the particles that went through a rigid body this step (``couplers.tunnelling``)
+        into ``self.passed_through`` {"body/rigid body": count}; stop when a body goes through, i.e. more
+        than ``TUNNEL_SHARE`` of its particles (at least ``TUNNEL_MIN``) in one step: the contact failed."""
+        crossed = self.tunnels.step(x0, poses0, x1)
+        for rigid_name, idx in crossed.items():
+            if not len(idx):
+                continue
+            for body, sl in self.slices.items():
+                n = int(np.sum((idx >= sl.start) & (idx < sl.stop)))
+                if not n:
+                    continue
+                key = f"{body}/{rigid_name}"
+                self.passed_through[key] = self.passed_through.get(key, 0) + n
+                if n > max(TUNNEL_MIN, TUNNEL_SHARE * (sl.stop - sl.start)):
+                    model = self.scene.contact.model if self.scene is not None else "?"
+                    others = " or ".join(m for m in ("forecast", "grid") if m != model)
+                    raise SimulationError(
+                        f"step {self.step_index}: {n} particles of body '{body}' went through rigid body "
+                        f"'{rigid_name}' (contact model '{model}'): the contact cannot stop them at this speed "
+                        f"and wall thickness; use contact.model {others}, a thicker wall or a smaller time.cfl"
+                        + (", or a larger contact.stiffness" if model == "particle" else "")
+                    )
 
     def _check_finite(self, state: dict[str, np.ndarray]) -> None:
         names = {"x": "position", "v": "velocity", "F": "deformation gradient", "C": "affine velocity"}

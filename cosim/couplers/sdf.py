@@ -165,12 +165,20 @@ def placed_box_bounds(half: np.ndarray, R: np.ndarray, t: np.ndarray) -> tuple[n
 
 
 def shape_sdf(shape, dim: int, spacing: float, padding: float, source_dir: Path, key: str) -> SDFGrid:
-    """The SDF of a validated scene ``RigidShape`` (primitive or mesh file)."""
+    """The SDF of a validated scene ``RigidShape`` (primitive or mesh file); refuses a shape with no
+    inside at ``spacing`` [m] (thinner than an SDF cell), which the contact models cannot see through."""
     if shape.type == "mesh":
         path = (Path(source_dir) / shape.file).resolve()
         mesh = load_mesh(path, shape.scale, f"{key}.file", SceneError)
-        return mesh_sdf(mesh, spacing, padding, key=f"{key}.file ({path.name})")
-    return primitive_sdf(shape.type, dim, spacing, padding, **primitive_size(shape))
+        grid = mesh_sdf(mesh, spacing, padding, key=f"{key}.file ({path.name})")
+    else:
+        grid = primitive_sdf(shape.type, dim, spacing, padding, **primitive_size(shape))
+    if grid.values.min() >= 0.0:
+        raise SceneError(
+            f"{key}: no SDF node lies inside the shape at the SDF spacing {spacing:.3g} m (its thinnest part "
+            f"is thinner than that): the particles would not see it; make it thicker or set sdf_spacing finer"
+        )
+    return grid
 
 
 def primitive_size(shape) -> dict:
