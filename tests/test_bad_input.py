@@ -161,6 +161,16 @@ CASES = {
         {},
         "rigid.bodies[0].shape.file",
     ),
+    "cloth_mesh_zero_area_face": (
+        at(base_3d(), "cloth", [{"name": "c", "mesh": {"type": "file", "file": "c.obj", "center": [0.5, 0.7, 0.5]}}]),
+        {"c.obj": "v 0 0 0\nv 0.1 0 0\nv 0 0 0.1\nv 0.2 0 0\nf 1 3 2\nf 1 2 4\n"},
+        "cloth[0].mesh",
+    ),
+    "cloth_mesh_sliver_face": (
+        at(base_3d(), "cloth", [{"name": "c", "mesh": {"type": "file", "file": "c.obj", "center": [0.5, 0.7, 0.5]}}]),
+        {"c.obj": "v 0 0 0\nv 0.2 0 0\nv 0.1 0 0.1\nv 0.1 0 0.0000001\nf 1 3 2\nf 1 2 4\n"},
+        "sliver faces",
+    ),
     "cloth_in_2d": (
         at(scene_dict(), "cloth", [{"name": "c", "mesh": {"type": "rectangle", "center": [0.5, 0.8, 0.5]}}]),
         {},

@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+SLIVER_RATIO = 1e-3  # a face whose smallest height is below this share of its longest edge is refused
 AREA_EPS = 1e-14  # [m^2] faces at or below this rest area are degenerate (rejected)
 AXES = {"x": 0, "y": 1, "z": 2}
 
@@ -76,6 +77,16 @@ def _rest_frames(x: np.ndarray, f: np.ndarray, source: str) -> tuple[np.ndarray,
         raise ValueError(
             f"{source}: {len(bad)} degenerate (zero-area) faces, first face {bad[0]} with vertices {f[bad[0]].tolist()}; "
             "remove them or merge their vertices"
+        )
+    longest = np.max(np.linalg.norm([e1, e2, e2 - e1], axis=2), axis=0)
+    flatness = 2.0 * area / longest**2  # smallest height over longest edge
+    thin = np.flatnonzero(flatness < SLIVER_RATIO)
+    if len(thin):
+        k = thin[np.argmin(flatness[thin])]
+        raise ValueError(
+            f"{source}: {len(thin)} sliver faces (height under {SLIVER_RATIO:g} of the longest edge), the worst face "
+            f"{k} with vertices {f[k].tolist()} at {flatness[k]:.2g}: their stiffness grows as 1 / height^2 and the "
+            "implicit solve cannot converge; remesh it (near-equilateral triangles) or merge the close vertices"
         )
     l1 = np.linalg.norm(e1, axis=1)
     t = e1 / l1[:, None]

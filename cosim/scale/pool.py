@@ -48,6 +48,26 @@ def default_workers() -> int:
     return os.cpu_count() or 1
 
 
+def on_ray(workers: int | None, address: str | None) -> bool:
+    """Whether cases go to Ray: more than one worker asked for, or a cluster address."""
+    return bool(address) or (workers or 1) > 1
+
+
+def run_cases(
+    job: Callable, argsets: list[tuple], workers: int | None = None, address: str | None = None
+) -> Iterator[Outcome]:
+    """``run_jobs`` when ``on_ray``, else every case in this process, one after the other, with the
+    same ``Outcome``s (a failing case is recorded and the rest go on)."""
+    if on_ray(workers, address):
+        yield from run_jobs(job, argsets, workers, address)
+        return
+    for index, args in enumerate(argsets):
+        try:
+            yield Outcome(index, True, job(*args))
+        except Exception as exc:  # noqa: BLE001 - any failure is this case's result; the others go on
+            yield Outcome(index, False, f"{type(exc).__name__}: {exc}")
+
+
 def run_jobs(
     job: Callable,
     argsets: list[tuple],

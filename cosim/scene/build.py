@@ -15,7 +15,7 @@ import numpy as np
 
 from cosim.engines import so3
 from cosim.errors import SceneError
-from cosim.scene.preflight import control_indices, preflight
+from cosim.scene.preflight import control_indices, hydrostatic_compression, preflight
 from cosim.scene.schema import Scene
 from cosim.system import Control, CoupledSystem, Stepping
 
@@ -53,20 +53,11 @@ def hydrostatic_deformation(pts: np.ndarray, spacing: float, material, gravity) 
     """F = J^(1/d) I with J = 1 - rho |g| depth / K: the liquid's own weight balanced.
 
     The pressure law sigma = K (J - 1) I makes the Cauchy pressure
-    p = K (1 - J); depth is measured along gravity from the body's top.
+    p = K (1 - J); depth is measured along gravity from the body's top
+    (``preflight.hydrostatic_compression``; ``preflight`` refused J <= 0).
     """
-    from cosim.engines.moduli import lame_parameters
-
     dim = pts.shape[1]
-    g = np.asarray(gravity, dtype=np.float64)
-    g_norm = np.linalg.norm(g)
-    if g_norm == 0:
-        return np.broadcast_to(np.eye(dim), (len(pts), dim, dim)).copy()
-    up = -g / g_norm
-    height = pts @ up
-    depth = height.max() + 0.5 * spacing - height
-    mu, lam = lame_parameters(material.E, material.nu, dim)
-    J = 1.0 - material.density * g_norm * depth / (lam + 2.0 * mu / dim)
+    J = hydrostatic_compression(pts, spacing, material, gravity)
     return J[:, None, None] ** (1.0 / dim) * np.eye(dim)[None]
 
 

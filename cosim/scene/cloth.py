@@ -43,10 +43,9 @@ def select_vertices(spec, rest: np.ndarray, key: str) -> np.ndarray:
     return np.unique(np.asarray(picked, dtype=np.int64))
 
 
-def build_cloth(scene, index: int):
-    """(ClothEngine, ActionPlan or None) of ``scene.cloth[index]``."""
-    from cosim.engines.cloth import ClothEngine, ClothMaterial
-
+def cloth_selection(scene, index: int) -> tuple:
+    """(mesh, pinned vertex indices, each control's vertex indices) of ``scene.cloth[index]``, in NumPy
+    (``preflight`` runs it: the mesh's faces and the selections are checked before anything is built)."""
     spec = scene.cloth[index]
     key = f"cloth[{index}]"
     mesh = build_mesh(spec.mesh, scene.source_dir, f"{key}.mesh")
@@ -59,6 +58,16 @@ def build_cloth(scene, index: int):
         raise SceneError(
             f"{key}: a vertex is both pinned and controlled, or in two controls; make the selections disjoint"
         )
+    return mesh, fixed, controls
+
+
+def build_cloth(scene, index: int):
+    """(ClothEngine, ActionPlan or None) of ``scene.cloth[index]``."""
+    from cosim.engines.cloth import ClothEngine, ClothMaterial
+
+    spec = scene.cloth[index]
+    key = f"cloth[{index}]"
+    mesh, fixed, controls = cloth_selection(scene, index)
     m = spec.material
     material = ClothMaterial(k_stretch=m.stretch, k_bend=m.bend, c_mass=m.damping, density=m.density)
     engine = ClothEngine(

@@ -3,8 +3,8 @@
 ``cosim validate`` runs it, and ``build_system`` runs the same function before building anything,
 so whatever `run` refuses at the start, `validate` refuses with the same message: the grid fits in
 memory, every body samples into the grid, control regions select particles, a fixed substep count
-is below the explicit stability bound and an automatic one within ``time.max_substeps``, and a
-loss's target points can be read.
+is below the explicit stability bound and an automatic one within ``time.max_substeps``, a liquid
+started hydrostatic is stiff enough to carry its own weight, and a loss's target points can be read.
 """
 
 from __future__ import annotations
@@ -14,8 +14,9 @@ import os
 
 import numpy as np
 
-from cosim.engines.moduli import wave_speed
+from cosim.engines.moduli import lame_parameters, wave_speed
 from cosim.errors import SceneError
+from cosim.scene.cloth import cloth_selection
 from cosim.scene.particles import body_positions
 from cosim.scene.schema import Scene
 
@@ -30,7 +31,10 @@ def preflight(scene: Scene) -> list[np.ndarray]:
     bodies = body_positions(scene)
     check_control_regions(scene, bodies)
     check_substeps(scene, bodies)
+    check_hydrostatic(scene, bodies)
     check_loss_targets(scene)
+    for index in range(len(scene.cloth)):  # each cloth's mesh (no degenerate or sliver faces) and selections
+        cloth_selection(scene, index)
     return bodies
 
 
@@ -97,6 +101,37 @@ def check_substeps(scene: Scene, bodies: list[np.ndarray]) -> None:
             f"(wave speed {c:.3g} m/s, initial speed {v:.3g} m/s), more than time.max_substeps = "
             f"{time.max_substeps}; {what}, shorten time.frame_dt or raise time.max_substeps"
         )
+
+
+def hydrostatic_compression(pts: np.ndarray, spacing: float, material, gravity) -> np.ndarray:
+    """J = 1 - rho |g| depth / K per particle: the volume ratio at which a liquid's pressure law
+    p = K (1 - J) carries the weight above it (K = lambda + 2 mu / d [Pa]; depth [m] along gravity
+    from the body's top, half a spacing above its highest particle). Ones without gravity."""
+    dim = pts.shape[1]
+    g = np.asarray(gravity, dtype=np.float64)
+    g_norm = float(np.linalg.norm(g))
+    if g_norm == 0:
+        return np.ones(len(pts))
+    height = pts @ (-g / g_norm)
+    depth = height.max() + 0.5 * spacing - height
+    mu, lam = lame_parameters(material.E, material.nu, dim)
+    return 1.0 - material.density * g_norm * depth / (lam + 2.0 * mu / dim)
+
+
+def check_hydrostatic(scene: Scene, bodies: list[np.ndarray]) -> None:
+    """A liquid started hydrostatic has J > 0 everywhere: softer, its bottom would need a negative volume."""
+    for i, (spec, pts) in enumerate(zip(scene.mpm.bodies, bodies)):
+        if not spec.hydrostatic:
+            continue
+        J = hydrostatic_compression(pts, spec.spacing or 0.5 * scene.dx, spec.material, scene.gravity)
+        if J.min() <= 0:
+            E_zero = spec.material.E * (1.0 - J.min())  # K scales with E: the E of J = 0 at the bottom
+            raise SceneError(
+                f"mpm.bodies[{i}].hydrostatic: liquid '{spec.name}' is too soft to carry its own weight at rest: "
+                f"its bottom would need the volume ratio J = 1 - rho |g| depth / K = {J.min():.3g} <= 0 "
+                f"(K from material.E and nu); raise material.E above {E_zero:.3g} Pa (10 times that keeps "
+                "the compression under 10%), lower the density, or remove hydrostatic"
+            )
 
 
 def check_loss_targets(scene: Scene) -> None:
