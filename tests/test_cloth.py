@@ -347,3 +347,15 @@ def test_engine_conforms_to_the_contract():
     assert set(out) == {"state", "action", "forces", "material"}
     assert set(out["material"]) == set(MATERIAL_KEYS)
     assert all(np.shape(out["material"][k]) == np.shape(engine.material()[k]) for k in MATERIAL_KEYS)
+
+
+def test_newton_accepts_a_residual_stalled_at_round_off_only_near_the_tolerance():
+    from cosim.engines.cloth import _stalled_at_round_off
+
+    quadratic = [1e2, 1e-2, 4e-7]
+    flat = quadratic + [2.3e-9, 2.2e-9, 2.29e-9, 2.19e-9, 2.29e-9]  # cloth_catch, step 963
+    assert not _stalled_at_round_off(quadratic, 1.95e-9)
+    assert _stalled_at_round_off(flat, 1.95e-9)
+    assert not _stalled_at_round_off(flat, 1e-12)  # 2000x the tolerance: not converged
+    still_improving = quadratic + [2e-8, 1e-8, 5e-9, 2.5e-9, 2.2e-9]
+    assert not _stalled_at_round_off(still_improving, 1.95e-9)

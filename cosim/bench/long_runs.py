@@ -41,23 +41,29 @@ COLUMNS = [
 
 
 def run_long_bench(
-    out_dir: Path, steps: int = 10_000, quick: bool = False, workers: int | None = None, address: str | None = None
+    out_dir: Path,
+    steps: int = 10_000,
+    quick: bool = False,
+    workers: int | None = None,
+    address: str | None = None,
+    scenes: list[str] | None = None,
 ) -> int:
-    """Run every scene of ``SCENE_TYPES`` for ``steps`` macro steps (``quick``: 200); exit 3 if one stopped."""
+    """Run ``scenes`` (default every one of ``SCENE_TYPES``) for ``steps`` macro steps (``quick``: 200);
+    exit 3 if one stopped."""
     from cosim.scale.jobs import run_case
     from cosim.scene.shipped import scenes_dir
 
     steps = 200 if quick else steps
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    names = list(SCENE_TYPES)
+    names = list(scenes or SCENE_TYPES)
     cases = [(str(scenes_dir() / f"{name}.yaml"), {}, [], steps, False) for name in names]
     where = f"Ray, {workers or 'all'} workers" if on_ray(workers, address) else "one process, in turn"
     print(f"long runs: {len(names)} scenes x {steps} macro steps ({where}) on {hardware_line()}", flush=True)
     rows = []
     for outcome in run_cases(run_case, cases, workers, address):
         name = names[outcome.index]
-        row = {"scene": name, "type": SCENE_TYPES[name], "steps": steps}
+        row = {"scene": name, "type": SCENE_TYPES.get(name, ""), "steps": steps}
         if outcome.ok:
             m = outcome.value
             through = sum(v for k, v in m.items() if k.startswith("particles_passed_through/"))

@@ -41,8 +41,10 @@ exact Hessian, positive definite there thanks to M / h^2, converges quadraticall
 search on E (round-off aware), sparse LU (SuperLU, MMD ordering on A^T + A, symmetric mode, the CSC
 pattern built once per mesh) per iteration; converged
 when ||grad E||_inf over free dofs <= tol, tol = max(rtol * m_max * 9.81 m/s^2 (+ rtol max|f|),
-round-off floor 64 eps (|x|_max + size) (m_max (1 + c_m h) / h^2 + 8 k_stretch + 8 k_bend / l_min^2)),
-the floor being where float64 cannot resolve the gradient any better. Not converged within
+round-off floor 64 eps (|x|_max + size) (m_max (1 + c_m h) / h^2 + 8 k_stretch + 8 k_bend / l_min^2
++ the stiffest active rigid-contact spring)),
+the floor being where float64 cannot resolve the gradient any better; a residual that has stopped
+improving within 100x of it counts as converged (the floor is an estimate). Not converged within
 ``max_iterations``: ``SimulationError`` naming the step and the residual. ``vjp``: ``cloth_adjoint``.
 """
 
@@ -349,6 +351,8 @@ class ClothEngine(ClothAdjoint):
         h = self.frame_dt
         wanted = self.rtol * (m_max * G_REF + float(np.abs(d.forces).max()))
         stiffness = m_max * (1 + mat.c_mass * h) / h**2 + 8 * mat.k_stretch + 8 * mat.k_bend / self._l_min**2
+        if d.contacts is not None and len(d.contacts.stiffness):  # active penalty springs (~100 m / h^2)
+            stiffness += float(d.contacts.stiffness.max())
         floor = 64 * np.finfo(np.float64).eps * (float(np.abs(d.x_n).max()) + self._size) * stiffness
         return max(wanted, floor)
 
@@ -357,7 +361,7 @@ class ClothEngine(ClothAdjoint):
         x = d.x_hat.copy()
         x[~self.free] = x_pres[~self.free]
         tol = self._tolerance(d)
-        residual = np.inf
+        residual, history = np.inf, []
         for it in range(self.max_iterations + 1):
             g = self._gradient(x, d).reshape(-1)[self.free_dofs]
             residual = float(np.abs(g).max()) if len(g) else 0.0
@@ -365,7 +369,8 @@ class ClothEngine(ClothAdjoint):
                 raise SimulationError(
                     f"cloth '{self.name}': non-finite residual in step {self.steps}, Newton iteration {it}; reduce frame_dt or check the forces"
                 )
-            if residual <= tol:
+            history.append(residual)
+            if residual <= tol or _stalled_at_round_off(history, tol):
                 return x, it, residual, tol
             if it == self.max_iterations:
                 break
@@ -403,3 +408,16 @@ class ClothEngine(ClothAdjoint):
                 return trial
             alpha *= 0.5
         return trial
+
+
+STALL_WINDOW, STALL_FACTOR = 4, 100.0
+
+
+def _stalled_at_round_off(history: list[float], tol: float) -> bool:
+    """Newton has reached float64's floor: within ``STALL_FACTOR`` of the tolerance (whose round-off
+    floor is an estimate) and the last ``STALL_WINDOW`` iterations improved on the best residual
+    before them by less than 10%. Measured on cloth_catch after 963 steps: quadratic convergence
+    to 2.3e-9 N, then 40 iterations between 2.19e-9 and 2.29e-9 against an estimated 1.95e-9."""
+    if len(history) <= STALL_WINDOW or history[-1] > STALL_FACTOR * tol:
+        return False
+    return min(history[-STALL_WINDOW:]) > 0.9 * min(history[:-STALL_WINDOW])
