@@ -66,7 +66,7 @@ def run_long_bench(
         row = {"scene": name, "type": SCENE_TYPES.get(name, ""), "steps": steps}
         if outcome.ok:
             m = outcome.value
-            through = sum(v for k, v in m.items() if k.startswith("particles_passed_through/"))
+            through = int(sum(v for k, v in m.items() if k.startswith("particles_passed_through/")))
             row |= {k: m.get(k, "") for k in COLUMNS if k in m} | {"outcome": "ran", "passed_through": through}
         else:
             row["outcome"] = outcome.value
