@@ -219,7 +219,16 @@ def cmd_bench(args) -> int:
     from cosim.bench import run_bench
 
     return run_bench(
-        args.what, Path(args.out), quick=args.quick, repeat=args.repeat, workers=args.workers, address=args.address
+        args.what,
+        Path(args.out),
+        quick=args.quick,
+        repeat=args.repeat,
+        workers=args.workers,
+        address=args.address,
+        count=args.count,
+        seed=args.seed,
+        steps=args.steps,
+        scenes=args.scene,
     )
 
 
@@ -394,6 +403,15 @@ def make_parser() -> argparse.ArgumentParser:
     b.add_argument("--quick", action="store_true", help="fewer substeps (a smoke run)")
     b.add_argument(
         "--repeat", type=positive_int, default=3, help="contact, coupling, cloth: repetitions; times are medians"
+    )
+    b.add_argument("--count", type=positive_int, default=200, help="fuzz: how many random scenes (default 200)")
+    b.add_argument("--seed", type=int, default=0, help="fuzz: the first scene's seed; the others follow (default 0)")
+    b.add_argument("--steps", type=positive_int, default=10_000, help="long: macro steps per scene (default 10000)")
+    b.add_argument(
+        "--scene",
+        action="append",
+        metavar="NAME",
+        help="long: a shipped scene to run (repeatable; default one per type)",
     )
     add_ray_options(b)
     b.set_defaults(func=cmd_bench)

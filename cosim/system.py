@@ -326,8 +326,9 @@ class CoupledSystem:
 
     # ------------------------------------------------------------ time stepping and checks
     def auto_substeps(self, speed: float) -> int:
-        """Substeps so that (|v| + c) dt / dx <= cfl, c the fastest elastic wave."""
-        bound = self.stepping.cfl * self.dx / (speed + self.mpm.wave_speed()[0])
+        """Substeps so that (|v| + c) dt / dx <= cfl, c the fastest elastic wave, and dt stays under the
+        explicit viscous bound rho dx^2 / (2 d eta) of the most viscous liquid."""
+        bound = min(self.stepping.cfl * self.dx / (speed + self.mpm.wave_speed()[0]), self.mpm.viscous_time_step()[0])
         return max(1, math.ceil(self.frame_dt / bound - 1e-9))
 
     def boundary_speed(self) -> float:

@@ -359,3 +359,6 @@ def test_newton_accepts_a_residual_stalled_at_round_off_only_near_the_tolerance(
     assert not _stalled_at_round_off(flat, 1e-12)  # 2000x the tolerance: not converged
     still_improving = quadratic + [2e-8, 1e-8, 5e-9, 2.5e-9, 2.2e-9]
     assert not _stalled_at_round_off(still_improving, 1.95e-9)
+    wandering = quadratic + [2.3e-9, 2.9e-7, 4e-8, 1e-7, 2.9e-7]  # round-off steps that raise the residual
+    assert _stalled_at_round_off(wandering, 1.95e-9)
+    assert not _stalled_at_round_off(quadratic + [3e-7, 2.9e-7, 4e-8, 1e-7, 2.9e-7], 1.95e-9)  # best 150x tol

@@ -323,10 +323,9 @@ def test_a_urdf_arm_is_placed_in_the_y_up_world_with_a_hollow_bottle():
 
 
 def test_a_typo_in_a_urdf_link_name_is_an_error():
-    from cosim.scene.articulated import build_articulated
-
-    with pytest.raises(SceneError, match=r"no links named \['botle'\]"):
-        build_articulated(urdf_scene(couple=["botle"]), dx=1 / 96)
+    """Caught when the scene is read, naming the key and the links the URDF has."""
+    with pytest.raises(SceneError, match=r"couple\.botle: the URDF has no link 'botle'; it has \[.*'bottle'\]"):
+        urdf_scene(couple=["botle"])
 
 
 def test_the_real_panda_scene_names_its_optional_extra_when_missing(monkeypatch):

@@ -135,3 +135,33 @@ def test_a_watertight_mesh_with_sliver_faces_samples_and_collides(tmp_path):
     assert state["v"][:, 1].mean() < free_flight - 0.1  # the ball pushed back (measured: 0.18 m/s below)
     assert sim.rigid.particles_inside(state["x"], depth=0.5 * sim.dx) == {"ball": 0}
     assert sim.passed_through == {}
+
+
+def viscous_drop(eta: float, substeps="auto"):
+    """A liquid block of viscosity ``eta`` [Pa s] falling in a 32-cell box: its explicit viscous bound
+    rho dx^2 / (4 eta) is 2.4e-4 s at eta = 1000, 7x below the wave's CFL step at cfl 0.9."""
+    liquid = {
+        "name": "honey",
+        "material": {"type": "liquid", "E": 2e5, "nu": 0.3, "density": 1000, "viscosity": eta},
+        "shape": {"type": "box", "center": [0.5, 0.3], "size": [0.3, 0.2]},
+    }
+    return make_scene(
+        steps=20,
+        time={"frame_dt": 4e-3, "substeps": substeps, "cfl": 0.9},
+        mpm={"grid": {"cells": 32}, "bodies": [liquid]},
+    )
+
+
+def test_a_very_viscous_liquid_takes_the_substeps_of_its_viscous_bound():
+    """eta = 1000 Pa s: the automatic count keeps dt under rho dx^2 / (2 d eta) and the run keeps its
+    energy budget (at the CFL step alone it went non-finite in its first frame)."""
+    scene = viscous_drop(1000.0)
+    sim = build_system(scene)
+    sim.rollout()
+    assert scene.time.frame_dt / sim.last.substeps <= 1000 * scene.dx**2 / (4 * 1000.0)
+    assert sim.conservation.excess < 1e-6
+
+
+def test_fixed_substeps_above_the_viscous_bound_are_refused_naming_the_viscosity():
+    with pytest.raises(SceneError, match=r"time\.substeps: 4 substeps .*viscous bound .*material\.viscosity = 1000"):
+        build_system(viscous_drop(1000.0, substeps=4))

@@ -3,16 +3,20 @@
 - ``mpm``: MPM throughput (particle-substeps per second), backward/forward cost, peak memory;
 - ``contact``: the paper's contact benchmark (penetration, rebound, time per contact model);
 - ``coupling``: what the MPM-DART coupling costs on pour_water and pull_door;
-- ``cloth``: the cloth step, the nearest-face query, the MPM-cloth coupling and a taco-sized case.
+- ``cloth``: the cloth step, the nearest-face query, the MPM-cloth coupling and a taco-sized case;
+- ``fuzz``: random valid scenes run to an outcome each (ran, or a clear scene or simulation error);
+- ``accuracy``: run time against error on reference problems (work-precision diagrams, Pareto fronts);
+- ``long``: one shipped scene of each type for 10,000 macro steps under the runner's guards (energy, volume).
 
-Each writes ``OUT/<name>.csv`` (cloth: ``OUT/cloth.json``, its results being nested). The modules import Taichi only when run, so this package is cheap to import.
+Each writes ``OUT/<name>.csv`` (cloth: ``OUT/cloth.json``, its results being nested; fuzz: also
+``OUT/repros/seed_N.yaml`` for each failure; accuracy: also ``accuracy.md`` and a PNG per problem). The modules import Taichi only when run, so this package is cheap to import.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
-BENCHMARKS = ("mpm", "contact", "coupling", "cloth")
+BENCHMARKS = ("mpm", "contact", "coupling", "cloth", "fuzz", "accuracy", "long")
 
 
 def run_bench(
@@ -22,12 +26,33 @@ def run_bench(
     repeat: int = 3,
     workers: int | None = None,
     address: str | None = None,
+    count: int = 200,
+    seed: int = 0,
+    steps: int = 10_000,
+    scenes: list[str] | None = None,
 ) -> int:
     """Run benchmark ``what`` (one of ``BENCHMARKS``), writing into ``out_dir``; returns the exit code.
 
     ``quick``: fewer steps (a smoke run); ``repeat`` (contact, coupling, cloth): repetitions, times are medians;
-    ``workers`` / ``address`` (contact: its independent runs): on Ray (``cosim.scale.pool``) when more than one.
+    ``workers`` / ``address`` (contact, accuracy: their independent runs): on Ray (``cosim.scale.pool``) when more than one;
+    ``count`` / ``seed`` (fuzz): how many random scenes, from which seed (``workers``: its processes);
+    ``steps`` / ``scenes`` (long): macro steps per scene, which shipped scenes (default one of each type).
     """
+    if what == "long":
+        from cosim.bench.long_runs import run_long_bench
+
+        return run_long_bench(out_dir, steps=steps, quick=quick, workers=workers, address=address, scenes=scenes)
+    if what == "fuzz":
+        from cosim.bench.fuzz import run_fuzz_bench
+        from cosim.errors import InputError
+
+        if address:
+            raise InputError("bench fuzz runs on this machine's processes (--workers); --address is not supported")
+        return run_fuzz_bench(out_dir, count=count, seed=seed, workers=workers)
+    if what == "accuracy":
+        from cosim.bench.accuracy import run_accuracy_bench
+
+        return run_accuracy_bench(out_dir, quick=quick, workers=workers, address=address)
     if what == "cloth":
         from cosim.bench.cloth import run_cloth_bench
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 import csv
 from pathlib import Path
 
+from cosim.errors import InputError
 from cosim.run import hardware_line
 from cosim.scale.pool import on_ray, run_cases
 
@@ -57,6 +58,10 @@ def run_long_bench(
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     names = list(scenes or SCENE_TYPES)
+    shipped = sorted(path.stem for path in scenes_dir().glob("*.yaml"))
+    unknown = [name for name in names if name not in shipped]
+    if unknown:
+        raise InputError(f"bench long --scene: no shipped scene named {unknown}; the shipped scenes are {shipped}")
     cases = [(str(scenes_dir() / f"{name}.yaml"), {}, [], steps, False) for name in names]
     where = f"Ray, {workers or 'all'} workers" if on_ray(workers, address) else "one process, in turn"
     print(f"long runs: {len(names)} scenes x {steps} macro steps ({where}) on {hardware_line()}", flush=True)

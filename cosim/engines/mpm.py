@@ -279,3 +279,11 @@ class MPMEngine(MPMAdjointKernels):
         ]
         worst = int(np.argmax(speeds))
         return speeds[worst], self.bodies[worst].name
+
+    def viscous_time_step(self) -> tuple[float, str]:
+        """The smallest explicit viscous time-step bound [s] over the bodies (inf without viscosity), and its body."""
+        from cosim.engines.moduli import viscous_time_step
+
+        bounds = [viscous_time_step(b.density, b.viscosity, self.dx, self.dim) for b in self.bodies]
+        worst = int(np.argmin(bounds))
+        return bounds[worst], self.bodies[worst].name

@@ -6,13 +6,15 @@ the modules behind it:
 - ``schema``: the pydantic models, one per section of the YAML file;
 - ``messages``: pydantic's errors as ``key.path[i]: message`` lines;
 - ``checks``: what spans several keys (vector lengths against ``dim``, names, files);
+- ``accuracy``: the ``accuracy: coarse | default | fine`` hint (grid refinement, CFL number, precision),
+  applied to the parsed YAML before the schema;
 - ``loader``: ``load_scene`` / ``parse_scene``, which run the schema, then the checks;
 - ``particles``: the soft bodies sampled into particles with NumPy only (``cosim validate``);
 - ``shipped``: where the scenes shipped with cosim and their assets are (``scenes_dir``, ``resolve_asset``);
 - ``build``: the scene made runnable, ``build_system(scene) -> CoupledSystem`` (only what it uses);
 - ``articulated``: DART skeletons, link SDFs and mass properties of the ``articulated:`` section.
 
-Dependencies point one way: schema <- messages, checks <- loader. Nothing here imports
+Dependencies point one way: schema <- messages, checks <- loader; accuracy <- loader. Nothing here imports
 Taichi or DART at module level (``build`` and ``articulated`` import them when called).
 
 The reference of every key is ``docs/scene-format.md``.

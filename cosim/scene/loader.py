@@ -1,4 +1,4 @@
-"""Reading a scene: YAML file -> schema -> checks that span several keys -> ``Scene``.
+"""Reading a scene: YAML file -> ``accuracy`` hint -> schema -> checks that span several keys -> ``Scene``.
 
 Every problem raises ``SceneError`` with one line per problem, each naming the
 key path, e.g. ``mpm.bodies[1].material.E: must be > 0``.
@@ -14,6 +14,7 @@ import yaml
 from pydantic import ValidationError
 
 from cosim.errors import SceneError
+from cosim.scene.accuracy import apply_accuracy_hint
 from cosim.scene.assignments import apply_assignments
 from cosim.scene.checks import semantic_problems
 from cosim.scene.messages import format_errors
@@ -24,6 +25,10 @@ def parse_scene(data: Any, source_dir: Path | str = ".", origin: str = "scene") 
     """Validate a scene given as Python data (the parsed YAML); ``source_dir`` anchors its relative paths."""
     if not isinstance(data, dict):
         raise SceneError(f"{origin}: the top level must be a mapping of keys, got {type(data).__name__}")
+    try:
+        data = apply_accuracy_hint(data)  # grid, CFL and precision of an ``accuracy:`` level
+    except SceneError as exc:
+        raise SceneError(f"{origin}: invalid scene\n  {exc}") from None
     try:
         scene = Scene.model_validate(data)
     except ValidationError as exc:

@@ -14,9 +14,8 @@ import os
 
 import numpy as np
 
-from cosim.engines.moduli import lame_parameters, wave_speed
+from cosim.engines.moduli import lame_parameters, viscous_time_step, wave_speed
 from cosim.errors import SceneError
-from cosim.scene.cloth import cloth_selection
 from cosim.scene.particles import body_positions
 from cosim.scene.schema import Scene
 
@@ -33,8 +32,11 @@ def preflight(scene: Scene) -> list[np.ndarray]:
     check_substeps(scene, bodies)
     check_hydrostatic(scene, bodies)
     check_loss_targets(scene)
-    for index in range(len(scene.cloth)):  # each cloth's mesh (no degenerate or sliver faces) and selections
-        cloth_selection(scene, index)
+    if scene.cloth:  # each cloth's mesh (no degenerate or sliver faces) and selections
+        from cosim.scene.cloth import cloth_selection  # only cloth scenes load the cloth modules
+
+        for index in range(len(scene.cloth)):
+            cloth_selection(scene, index)
     return bodies
 
 
@@ -75,31 +77,45 @@ def check_control_regions(scene: Scene, bodies: list[np.ndarray]) -> None:
 
 
 def check_substeps(scene: Scene, bodies: list[np.ndarray]) -> None:
-    """A fixed count keeps dt below dx / c; an automatic count for the first frame (initial speeds,
-    one frame of gravity) stays within ``time.max_substeps``."""
+    """A fixed count keeps dt below dx / c and the viscous bound rho dx^2 / (2 d eta); an automatic
+    count for the first frame (initial speeds, one frame of gravity) stays within ``time.max_substeps``."""
     frame_dt, dx, time = scene.time.frame_dt, scene.dx, scene.time
     fall = float(np.linalg.norm(scene.gravity)) * frame_dt
-    worst = None  # (substeps needed, body index, wave speed, initial speed)
+    worst = None  # (substeps needed, body index, wave speed, initial speed, viscous bound)
     for i, spec in enumerate(scene.mpm.bodies):
         m = spec.material
         c = wave_speed(m.E, m.nu, m.density, scene.dim)
         v = float(np.linalg.norm(spec.velocity)) if spec.velocity is not None else 0.0
-        need = frame_dt * (c + v + fall) / (time.cfl * dx)
-        if time.substeps and frame_dt / time.substeps * c > dx:
+        viscous = viscous_time_step(m.density, getattr(m, "viscosity", 0.0), dx, scene.dim)
+        need = max(frame_dt * (c + v + fall) / (time.cfl * dx), frame_dt / viscous)
+        dt = frame_dt / time.substeps if time.substeps else 0.0
+        if dt * c > dx:
             raise SceneError(
-                f"time.substeps: {time.substeps} substeps give dt = {frame_dt / time.substeps:.3g} s, above the "
+                f"time.substeps: {time.substeps} substeps give dt = {dt:.3g} s, above the "
                 f"explicit stability bound dx / c = {dx / c:.3g} s of body '{spec.name}' (elastic wave speed "
                 f"c = {c:.3g} m/s from its E); use at least {math.ceil(need)} substeps, or 'auto'"
             )
+        if dt > viscous:
+            raise SceneError(
+                f"time.substeps: {time.substeps} substeps give dt = {dt:.3g} s, above the explicit viscous "
+                f"bound rho dx^2 / (2 d eta) = {viscous:.3g} s of body '{spec.name}' (mpm.bodies[{i}].material."
+                f"viscosity = {m.viscosity:g} Pa s); use at least {math.ceil(need)} substeps, or 'auto'"
+            )
         if worst is None or need > worst[0]:
-            worst = (need, i, c, v)
-    need, i, c, v = worst
+            worst = (need, i, c, v, viscous)
+    need, i, c, v, viscous = worst
     if not time.substeps and need > time.max_substeps:
-        key, what = (f"mpm.bodies[{i}].material.E", "lower E") if c >= v else (f"mpm.bodies[{i}].velocity", "slow it")
+        if frame_dt / viscous >= need:
+            key, what = f"mpm.bodies[{i}].material.viscosity", "lower the viscosity"
+        elif c >= v:
+            key, what = f"mpm.bodies[{i}].material.E", "lower E"
+        else:
+            key, what = f"mpm.bodies[{i}].velocity", "slow it"
         raise SceneError(
-            f"{key}: body '{scene.mpm.bodies[i].name}' needs {need:.3g} substeps per frame for the CFL bound "
-            f"(wave speed {c:.3g} m/s, initial speed {v:.3g} m/s), more than time.max_substeps = "
-            f"{time.max_substeps}; {what}, shorten time.frame_dt or raise time.max_substeps"
+            f"{key}: body '{scene.mpm.bodies[i].name}' needs {need:.3g} substeps per frame for the CFL and "
+            f"viscous bounds (wave speed {c:.3g} m/s, initial speed {v:.3g} m/s, viscous dt bound {viscous:.3g} s), "
+            f"more than time.max_substeps = {time.max_substeps}; {what}, shorten time.frame_dt or raise "
+            "time.max_substeps"
         )
 
 

@@ -342,6 +342,8 @@ class Scene(Strict):
     description: str = ""
     dim: Literal[2, 3]
     precision: Literal["float32", "float64"] = "float32"
+    # grid refinement, time.cfl and precision in one word, applied before validation (cosim.scene.accuracy)
+    accuracy: Literal["coarse", "default", "fine"] | None = None
     arch: Literal["cpu", "cuda"] = "cpu"
     seed: int = 0
     steps: Annotated[int, Field(ge=1)] = 100
