@@ -69,7 +69,7 @@ def test_cli_set_changes_what_validate_counts(capsys):
     assert n[1] == pytest.approx(4 * n[0], rel=0.02), (before, after)
 
 
-def test_gradcheck_says_when_it_overrides_the_scene_precision(tmp_path):
+def test_gradcheck_says_when_it_overrides_the_scene_precision(tmp_path, capsys):
     """The tiny scene written in float32: gradcheck runs it in float64 and says so; with --precision
     float32 it says that was asked for."""
     import yaml
@@ -81,8 +81,11 @@ def test_gradcheck_says_when_it_overrides_the_scene_precision(tmp_path):
             scene_dict(precision="float32", loss={"type": "com_target", "body": "block", "target": [0.5, 0.4]})
         )
     )
-    res = run_cli("gradcheck", str(path), "--steps", "1", "--directions", "1")
-    assert "precision: float64, not the scene's float32 (gradcheck's default" in res.stdout, res.stdout + res.stderr
+    from cosim.cli import main
+
+    main(["gradcheck", str(path), "--steps", "1", "--directions", "1"])  # in this process: float64 as well
+    out = capsys.readouterr().out
+    assert "precision: float64, not the scene's float32 (gradcheck's default" in out, out
     res = run_cli(
         "gradcheck", str(path), "--steps", "1", "--directions", "1", "--precision", "float32", "--tolerance", "1"
     )

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import make_scene, run_cli, scene_dict
+from conftest import make_scene, scene_dict
 
 from cosim.adjoint.gradcheck import check_gradients
 from cosim.adjoint.objective import Objective
@@ -106,13 +106,15 @@ def test_a_custom_loss_callable_gets_its_exact_gradient():
 def test_chamfer_target_from_a_saved_rollout(tmp_path):
     """`cosim run --save-target` writes the final positions; a chamfer term on them is 0 for the
     same rollout and positive for another; a missing file is named with the fix."""
-    data = scene_dict(steps=3)
     import yaml
+
+    from cosim.cli import main
+
+    data = scene_dict(steps=3)
 
     path = tmp_path / "scene.yaml"
     path.write_text(yaml.safe_dump(data))
-    res = run_cli("run", str(path), "--out", str(tmp_path / "ref"), "--quiet", "--save-target")
-    assert res.returncode == 0, res.stderr
+    assert main(["run", str(path), "--out", str(tmp_path / "ref"), "--quiet", "--save-target", "--no-preview"]) == 0
     saved = np.load(tmp_path / "ref" / "target.npz")
     assert list(saved.keys()) == ["x_block"]
     loss = {"type": "chamfer", "body": "block", "points": {"rollout": str(tmp_path / "ref" / "target.npz")}}
