@@ -361,7 +361,7 @@ class ClothEngine(ClothAdjoint):
         x = d.x_hat.copy()
         x[~self.free] = x_pres[~self.free]
         tol = self._tolerance(d)
-        residual, history, best = np.inf, [], None
+        residual, history, best, alpha = np.inf, [], None, 1.0
         for it in range(self.max_iterations + 1):
             g = self._gradient(x, d).reshape(-1)[self.free_dofs]
             residual = float(np.abs(g).max()) if len(g) else 0.0
@@ -378,29 +378,33 @@ class ClothEngine(ClothAdjoint):
                 return best[0], it, best[1], tol
             if it == self.max_iterations:
                 break
-            x = self._line_search(x, self._direction(x, g, d), g, d)
+            # after a step the line search had to cut below half, the exact Hessian's model is poor here
+            # (cloth_catch, step 963: 52 iterations of steps cut to 1/256..1/2048 with it, 26 so)
+            x, alpha = self._line_search(x, self._direction(x, g, d, exact=alpha >= 0.5), g, d)
         raise SimulationError(
             f"cloth '{self.name}': Newton did not converge in step {self.steps} within {self.max_iterations} iterations: "
             f"residual ||grad E||_inf = {residual:.3e} N > tolerance {tol:.3e} N; "
             "reduce frame_dt, raise max_iterations or soften the material"
         )
 
-    def _direction(self, x: np.ndarray, g: np.ndarray, d: _Step) -> np.ndarray:
-        """Newton direction over the free dofs: with the exact Hessian when it is positive definite (then
-        Newton converges quadratically), else with the per-element PSD-projected one (always a descent
-        direction; alone it converges only linearly once the exact Hessian would do)."""
+    def _direction(self, x: np.ndarray, g: np.ndarray, d: _Step, exact: bool = True) -> np.ndarray:
+        """Newton direction over the free dofs: with the exact Hessian when ``exact`` and it is positive
+        definite (then Newton converges quadratically), else with the per-element PSD-projected one
+        (always a descent direction, and the stiffer model where elements are compressed or bent; alone
+        it converges only linearly once the exact Hessian would do)."""
         diagonal = self._mass_diagonal(d.material)
-        for project in (False, True):
+        for project in (False, True) if exact else (True,):
             entries = self._element_hessians(x, d.material, d.contacts, project)
             lu = splu(self._ff.matrix(entries, diagonal), **SPD_LU)
             if project or _positive_definite(lu):
                 return lu.solve(-g)
         raise AssertionError("unreachable")
 
-    def _line_search(self, x: np.ndarray, dx: np.ndarray, g: np.ndarray, d: _Step) -> np.ndarray:
+    def _line_search(self, x: np.ndarray, dx: np.ndarray, g: np.ndarray, d: _Step) -> tuple[np.ndarray, float]:
         """Backtracking on E along the free-dof direction dx: accept a sufficient decrease (Armijo,
         c = 1e-4); once the predicted decrease alpha |g . dx| is below E's round-off (near convergence)
-        E cannot rank the points, so accept any step that does not raise E beyond its round-off."""
+        E cannot rank the points, so accept any step that does not raise E beyond its round-off.
+        Returns the new positions and the step length alpha taken."""
         E0, noise = self._potential(x, d)
         slope = float(g @ dx)
         alpha = 1.0
@@ -409,9 +413,9 @@ class ClothEngine(ClothAdjoint):
             trial.reshape(-1)[self.free_dofs] += alpha * dx
             E = self._potential(trial, d)[0]
             if E <= E0 + 1e-4 * alpha * slope or (alpha * abs(slope) <= noise and E <= E0 + noise):
-                return trial
+                return trial, alpha
             alpha *= 0.5
-        return trial
+        return trial, alpha
 
 
 STALL_WINDOW, STALL_FACTOR = 4, 100.0
