@@ -131,7 +131,7 @@ class ClothEngine(ClothAdjoint):
         frame_dt: float = 2e-3,
         name: str = "cloth",
         rtol: float = 1e-10,
-        max_iterations: int = 50,
+        max_iterations: int = 200,
     ) -> None:
         if not frame_dt > 0:
             raise InputError(f"cloth '{name}': frame_dt must be > 0, got {frame_dt}")

@@ -311,7 +311,7 @@ class ClothSpec(Strict):
     actions: ClothActionSpec = ClothActionSpec()
     thickness: Positive | None = None  # [m] contact distance to rigid bodies, default dx / 2
     tolerance: Positive = 1e-9  # Newton: residual force relative to the cloth's weight
-    max_iterations: Annotated[int, Field(ge=1, le=1000)] = 50
+    max_iterations: Annotated[int, Field(ge=1, le=1000)] = 200
 
 
 class ContactSpec(Strict):
