@@ -77,10 +77,13 @@ def cmd_run(args) -> int:
 
     scene = _load(args)
     if args.contact:
-        if scene.rigid is None:
+        if scene.rigid is None and scene.articulated is None and not scene.cloth:
             from cosim.errors import InputError
 
-            raise InputError(f"--contact {args.contact}: the scene has no rigid bodies (no 'rigid:' section)")
+            raise InputError(
+                f"--contact {args.contact}: nothing meets the MPM through a contact model in this scene "
+                "(no 'rigid:', 'articulated:' or 'cloth:' section)"
+            )
         scene.contact.model = args.contact
     out = Path(args.out or f"out/{scene.name}")
     m = run_scene(

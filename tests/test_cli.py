@@ -198,7 +198,7 @@ def test_run_contact_override_reports_particles_inside_rigid_bodies(tmp_path):
     assert inside + held + metrics["particles_elsewhere"] == metrics["particles"]
     assert held == metrics["particles"] and inside == 0
     bad = run_cli("run", "elastic_bounce_2d", "--contact", "grid", "--steps", "2", "--out", str(tmp_path / "b"))
-    assert bad.returncode == 2 and "no rigid bodies" in bad.stderr
+    assert bad.returncode == 2 and "nothing meets the MPM" in bad.stderr
 
 
 def test_kernel_optimisation_choice_reaches_child_processes():

@@ -3,7 +3,7 @@ and adjoint gradients across the coupling against central differences (float64).
 
 import numpy as np
 import pytest
-from conftest import ROOT, make_scene
+from conftest import ROOT, make_scene, scene_dict
 
 from cosim.adjoint.gradcheck import check_gradients
 from cosim.adjoint.objective import Objective
@@ -438,3 +438,30 @@ def test_optimised_actions_stay_within_their_bounds():
     outside = dict(actions, initial=[-40.0, 5.0, 0.5])
     with pytest.raises(SceneError, match="articulated.actions: the initial actions lie outside bounds"):
         build_system(scene(outside))
+
+
+def test_run_contact_override_works_on_a_scene_with_only_articulated_bodies(tmp_path, capsys):
+    """`cosim run --contact` on a scene whose rigid bodies are all DART links switches their model (the
+    metrics say which ran); on a scene with nothing to meet the MPM it is refused, exit 2, naming it."""
+    import json
+
+    import yaml
+
+    from cosim.cli import main
+
+    skeleton = free_box("box", [0.7, 0.5], [0.1, 0.1], 400.0)
+    data = scene_dict(
+        steps=2,
+        articulated={"skeletons": [skeleton]},
+        contact={"model": "grid"},
+        mpm={**scene_dict()["mpm"], "gravity": [0.0, 0.0]},
+    )
+    path = tmp_path / "dart_only.yaml"
+    path.write_text(yaml.safe_dump(data))
+    args = ["run", str(path), "--contact", "particle", "--out", str(tmp_path / "o"), "--quiet", "--no-preview"]
+    assert main(args) == 0
+    assert json.loads((tmp_path / "o" / "metrics.json").read_text())["contact_model"] == "particle"
+    plain = tmp_path / "plain.yaml"
+    plain.write_text(yaml.safe_dump(scene_dict()))
+    assert main(["run", str(plain), "--contact", "forecast", "--out", str(tmp_path / "p"), "--quiet"]) == 2
+    assert "--contact forecast: nothing meets the MPM" in capsys.readouterr().err
