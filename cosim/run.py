@@ -50,6 +50,8 @@ class Recorder:
         self.rigid_poses: list[list[tuple[np.ndarray, np.ndarray]]] = []
         self.cloths = cloth_engines(sim)
         self.cloth_frames: list[list[np.ndarray]] = []  # per frame, each cloth's vertex positions
+        self.velocities = sim.scene.output.velocities
+        self.v_frames: list[list[np.ndarray]] = []  # per frame, each body's then each cloth's velocities
 
     def __call__(self, step_index: int) -> None:
         from cosim.diagnostics import energies
@@ -61,6 +63,9 @@ class Recorder:
         if self.sim.rigid is not None:
             self.rigid_poses.append(self.sim.rigid.poses())
         self.cloth_frames.append([c.state()["x"].copy() for c in self.cloths])
+        if self.velocities:
+            bodies = [state["v"][sl].copy() for sl in self.sim.slices.values()]
+            self.v_frames.append(bodies + [c.state()["v"].copy() for c in self.cloths])
 
     def wants(self, step_index: int) -> bool:
         """Save after macro step ``step_index`` (1-based)? Every output.every, and the last."""
@@ -73,6 +78,10 @@ class Recorder:
         arrays = {"time": np.asarray(self.times), "body_names": np.asarray(names)}
         for i, name in enumerate(names):
             arrays[f"x_{name}"] = np.stack([f[i] for f in self.frames]).astype(np.float32)
+        if self.velocities:
+            keys = [f"v_{name}" for name in names] + [f"cloth_v_{c.name}" for c in self.cloths]
+            for i, key in enumerate(keys):
+                arrays[key] = np.stack([f[i] for f in self.v_frames]).astype(np.float32)
         for key in ("kinetic", "gravity", "strain", "total"):
             arrays[f"energy_{key}"] = np.asarray([e[key] for e in self.energy])
         rigid = self.sim.rigid

@@ -230,3 +230,23 @@ def test_a_rerun_is_bitwise_identical(tmp_path):
     assert set(first.files) == set(second.files) and "x_water" in first.files
     for key in first.files:
         assert np.array_equal(first[key], second[key]), key
+
+
+def test_saved_velocities_follow_free_fall(tmp_path):
+    """`output.velocities: true` adds v_<body> to trajectory.npz: a block thrown sideways in free fall
+    keeps its mean horizontal velocity and gains -g t vertically, exactly (gravity is applied on the
+    grid; MPM moves a uniformly moving body without stress); without the key no velocities are saved."""
+    from cosim.cli import main
+
+    data = scene_dict(steps=5, output={"velocities": True, "preview": "none"})
+    data["mpm"]["bodies"][0]["velocity"] = [0.3, 0.0]
+    path = tmp_path / "throw.yaml"
+    path.write_text(yaml.safe_dump(data))
+    assert main(["run", str(path), "--out", str(tmp_path / "o"), "--quiet"]) == 0  # in this process (float64)
+    traj = np.load(tmp_path / "o" / "trajectory.npz")
+    v = traj["v_block"].astype(np.float64).mean(axis=1)
+    assert v.shape == (6, 2)
+    np.testing.assert_allclose(v[:, 0], 0.3, atol=1e-6)
+    np.testing.assert_allclose(v[:, 1], -9.81 * traj["time"], atol=1e-6)
+    assert main(["run", str(path), "--set", "output.velocities=false", "--out", str(tmp_path / "p"), "--quiet"]) == 0
+    assert not any(k.startswith("v_") for k in np.load(tmp_path / "p" / "trajectory.npz"))

@@ -335,6 +335,7 @@ class OutputSpec(Strict):
     preview: Literal["gif", "mp4", "none"] = "gif"
     fps: Annotated[int, Field(ge=1, le=120)] = 30
     resolution: Annotated[int, Field(ge=64, le=2048)] = 640  # preview pixels (longest side)
+    velocities: bool = False  # also save particle (and cloth vertex) velocities per frame
 
 
 class Scene(Strict):
