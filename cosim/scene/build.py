@@ -17,6 +17,7 @@ from cosim.engines import so3
 from cosim.errors import SceneError
 from cosim.scene.preflight import control_indices, hydrostatic_compression, preflight
 from cosim.scene.schema import Scene
+from cosim.scene.velocity_field import velocity_field
 from cosim.system import Control, CoupledSystem, Stepping
 
 
@@ -28,7 +29,7 @@ def build_bodies(scene: Scene, positions: list[np.ndarray]):
     bodies = []
     for spec, pts in zip(scene.mpm.bodies, positions):
         spacing = spec.spacing or 0.5 * scene.dx
-        vel = np.zeros_like(pts) + (np.asarray(spec.velocity) if spec.velocity is not None else 0.0)
+        vel = velocity_field(spec.velocity, pts)
         m = spec.material
         deformation = hydrostatic_deformation(pts, spacing, m, scene.gravity) if spec.hydrostatic else None
         bodies.append(

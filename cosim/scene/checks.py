@@ -15,6 +15,7 @@ from cosim.engines.urdf_tree import UrdfTree, read_urdf_tree
 from cosim.errors import SceneError
 from cosim.scene.schema import BoxShape, CylinderShape, MeshShape, Scene
 from cosim.scene.shipped import resolve_asset
+from cosim.scene.velocity_field import expression_problem
 
 
 def semantic_problems(scene: Scene) -> list[str]:
@@ -47,6 +48,9 @@ def semantic_problems(scene: Scene) -> list[str]:
             if not path.is_file():
                 problems.append(f"{base}.shape.file: file not found: {path}")
         vec(f"{base}.velocity", body.velocity)
+        for k, component in enumerate(body.velocity or []):
+            if isinstance(component, str) and (problem := expression_problem(component, d)):
+                problems.append(f"{base}.velocity[{k}]: {problem}")
         if body.hydrostatic and body.material.type != "liquid":
             problems.append(f"{base}.hydrostatic: only liquids can start hydrostatic; remove the key")
         if body.spacing is not None and body.spacing > scene.dx:

@@ -18,6 +18,7 @@ from cosim.engines.moduli import lame_parameters, viscous_time_step, wave_speed
 from cosim.errors import SceneError
 from cosim.scene.particles import body_positions
 from cosim.scene.schema import Scene
+from cosim.scene.velocity_field import velocity_field
 
 # Share of the machine's memory the forward run's grid may take (the particles, tape and
 # the rest of the process need the remainder).
@@ -85,7 +86,13 @@ def check_substeps(scene: Scene, bodies: list[np.ndarray]) -> None:
     for i, spec in enumerate(scene.mpm.bodies):
         m = spec.material
         c = wave_speed(m.E, m.nu, m.density, scene.dim)
-        v = float(np.linalg.norm(spec.velocity)) if spec.velocity is not None else 0.0
+        velocities = velocity_field(spec.velocity, bodies[i])
+        if not np.isfinite(velocities).all():
+            raise SceneError(
+                f"mpm.bodies[{i}].velocity: not finite at {int((~np.isfinite(velocities)).any(axis=1).sum())} of "
+                f"body '{spec.name}''s particles; keep the expressions finite over the body"
+            )
+        v = float(np.linalg.norm(velocities, axis=1).max()) if len(velocities) else 0.0
         viscous = viscous_time_step(m.density, getattr(m, "viscosity", 0.0), dx, scene.dim)
         need = max(frame_dt * (c + v + fall) / (time.cfl * dx), frame_dt / viscous)
         dt = frame_dt / time.substeps if time.substeps else 0.0

@@ -11,7 +11,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from pydantic import BeforeValidator, Field
+from pydantic import BeforeValidator, Field, PlainValidator
 
 from cosim.engines.shapes import RIGID_SHAPE_KINDS
 from cosim.scene.schema_base import (  # noqa: F401  (re-exported: the scene's vocabulary)
@@ -25,6 +25,7 @@ from cosim.scene.schema_base import (  # noqa: F401  (re-exported: the scene's v
     Vec,
 )
 from cosim.scene.schema_objective import GradientSpec, LossSpec, OptimizeSpec
+from cosim.scene.velocity_field import velocity_component
 
 
 # ---------------------------------------------------------------- time, grid
@@ -91,7 +92,8 @@ class BodySpec(Strict):
     name: str
     material: Material
     shape: Shape
-    velocity: Vec | None = None  # [m/s], default at rest
+    # [m/s], default at rest; per component a number or an expression in x, y, z (cosim.scene.velocity_field)
+    velocity: list[Annotated[Any, PlainValidator(velocity_component)]] | None = None
     spacing: Positive | None = None  # [m] particle lattice spacing, default dx / 2
     jitter: Annotated[float, Field(ge=0, le=0.5)] = 0.0  # fraction of spacing
     hydrostatic: bool = False  # liquids: start compressed by their own weight (at rest)
