@@ -51,7 +51,7 @@ def sweep_cases(problems: dict[str, Problem], quick: bool = False) -> list[Case]
     return sorted(cases, key=cost, reverse=True)
 
 
-def run_cases(cases: list[Case], workers: int | None, address: str | None, log: Path) -> list[dict | str]:
+def run_sweep(cases: list[Case], workers: int | None, address: str | None, log: Path) -> list[dict | str]:
     """Each case's observation (a dict) or its error message, in the order of ``cases``; one group of
     processes per precision: Ray actors with ``workers`` > 1 or an ``address``, else one child process."""
     from tqdm import tqdm
@@ -73,7 +73,9 @@ def run_cases(cases: list[Case], workers: int | None, address: str | None, log: 
 
 def _outcomes(argsets: list[tuple], workers: int | None, address: str | None, log: Path):
     """(index into argsets, ok, observation or message) as cases finish."""
-    if address or (workers or 1) > 1:
+    from cosim.scale.pool import on_ray
+
+    if on_ray(workers, address):
         from cosim.bench.accuracy_worker import run_case
         from cosim.scale.pool import run_jobs
 
@@ -121,7 +123,7 @@ def run_accuracy_bench(
     load_start = os.getloadavg()
     started = datetime.now().isoformat(timespec="minutes")
     mode = f"Ray, {workers or 'all'} workers" if address or (workers or 1) > 1 else "one child process per precision"
-    results = run_cases(cases, workers, address, log)
+    results = run_sweep(cases, workers, address, log)
     measurement = Measurement(
         hardware=hardware_line(), started=started, load_start=load_start, load_end=os.getloadavg(), mode=mode
     )

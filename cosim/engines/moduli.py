@@ -1,7 +1,8 @@
 """Elastic moduli in plain Python (no Taichi): what the scene checks and the substep bound need.
 
 Lame parameters and the P-wave speed from Young's modulus E [Pa], Poisson's ratio nu and
-density [kg/m^3], and the explicit viscous time-step bound; ``cosim.engines.materials`` re-exports them beside the Taichi constitutive laws.
+density [kg/m^3], and the explicit viscous time-step bound; ``cosim.engines.materials``
+re-exports them beside the Taichi constitutive laws.
 """
 
 from __future__ import annotations

@@ -89,8 +89,8 @@ def check_substeps(scene: Scene, bodies: list[np.ndarray]) -> None:
         velocities = velocity_field(spec.velocity, bodies[i])
         if not np.isfinite(velocities).all():
             raise SceneError(
-                f"mpm.bodies[{i}].velocity: not finite at {int((~np.isfinite(velocities)).any(axis=1).sum())} of "
-                f"body '{spec.name}''s particles; keep the expressions finite over the body"
+                f"mpm.bodies[{i}].velocity: not finite at {int((~np.isfinite(velocities)).any(axis=1).sum())} "
+                f"particles of body '{spec.name}'; keep the expressions finite over the body"
             )
         v = float(np.linalg.norm(velocities, axis=1).max()) if len(velocities) else 0.0
         viscous = viscous_time_step(m.density, getattr(m, "viscosity", 0.0), dx, scene.dim)
