@@ -236,44 +236,42 @@ def cmd_bench(args) -> int:
 
 
 def cmd_render(args) -> int:
+    """Redraw a saved trajectory as ``cosim run``'s preview draws it (``cosim.run.write_trajectory_preview``:
+    particles, rigid bodies at their saved poses, cloth)."""
     import numpy as np
 
     from cosim.errors import InputError
-    from cosim.render import write_preview
-    from cosim.run import preview_frames, up_axis
+    from cosim.run import write_trajectory_preview
 
     scene = _load(args)
     path = Path(args.trajectory)
     if not path.is_file():
         raise InputError(f"trajectory file not found: {path}; `cosim run` writes one as OUT/trajectory.npz")
     traj = np.load(path, allow_pickle=False)
-    names = [str(n) for n in traj["body_names"]] if "body_names" in traj else []
-    missing = [f"x_{n}" for n in names if f"x_{n}" not in traj] if names else ["body_names"]
+    bodies = traj.get("body_names", [])
+    cloths = traj.get("cloth_names", [])
+    required = ["body_names", "time", *(f"x_{n}" for n in bodies)]
+    required += [f"cloth_{k}_{n}" for n in cloths for k in ("x", "faces")]
+    missing = [key for key in required if key not in traj]
     if missing:
         raise InputError(f"{path}: not a cosim trajectory (missing {', '.join(missing)})")
-    frames = [[traj[f"x_{n}"][i] for n in names] for i in range(len(traj["time"]))]
-    rigid, poses = _rigid_of(scene, traj, path)
-    spacing = min(b.spacing or 0.5 * scene.dx for b in scene.mpm.bodies)
-    path = write_preview(
-        Path(args.output),
-        preview_frames(frames, traj["time"], rigid, poses),
-        np.asarray(scene.cells) * scene.dx,
-        spacing,
-        scene.output.resolution,
-        scene.output.fps,
-        up_axis(scene.gravity),
-    )
-    print(f"wrote {path}")
+    out = write_trajectory_preview(Path(args.output), traj, scene, _rigid_of(scene, traj, path))
+    print(f"wrote {out}")
     return 0
 
 
 def _rigid_of(scene, traj, path: Path):
-    """The scene's ``RigidBodies`` (for their SDF surfaces) and the trajectory's poses per frame,
-    or (None, None) for a trajectory without rigid bodies."""
+    """The scene's ``RigidBodies`` (for their SDF surfaces), checked against the trajectory's rigid
+    bodies, or None for a trajectory without rigid bodies."""
     from cosim.errors import InputError
 
     if "rigid_names" not in traj:
-        return None, None
+        return None
+    if "rigid_pos" not in traj:
+        raise InputError(
+            f"{path}: written by an older cosim (per-body rigid_pos_<body> keys, not rigid_pos); "
+            "run the scene again to render it"
+        )
     from cosim.scene.build import build_system
 
     rigid = build_system(scene).rigid
@@ -283,8 +281,7 @@ def _rigid_of(scene, traj, path: Path):
             f"{path}: its rigid bodies {names} are not the scene's {list(rigid.names) if rigid else []}; "
             "render it with the scene that wrote it"
         )
-    count = len(traj["time"])
-    return rigid, [[(traj[f"rigid_pos_{n}"][i], traj[f"rigid_rot_{n}"][i]) for n in names] for i in range(count)]
+    return rigid
 
 
 def add_ray_options(parser: argparse.ArgumentParser) -> None:

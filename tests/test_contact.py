@@ -205,7 +205,7 @@ def test_scene_with_a_shaken_container_drives_the_liquid(tmp_path):
     rec.write(tmp_path, preview=False)
     traj = np.load(tmp_path / "trajectory.npz")
     assert list(traj["rigid_names"]) == ["container"]
-    assert np.allclose(traj["rigid_pos_container"][:, 0], [0.5, 0.5 - 0.3 * 0.06, 0.5 - 0.3 * 0.12])
+    assert np.allclose(traj["rigid_pos"][:, 0, 0], [0.5, 0.5 - 0.3 * 0.06, 0.5 - 0.3 * 0.12])
 
 
 @pytest.mark.parametrize("model", MODELS)
