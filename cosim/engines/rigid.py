@@ -13,7 +13,11 @@ Layouts (fixed at construction; skeletons in the order given, dofs in DART's ske
 - bodies: ``body_names`` = "skeleton/link" for every body node, skeletons in order, DART's body order within.
 
 The step is DART's: semi-implicit Euler, implicit joint damping, enforced joint limits, optional rigid
-contact. ``vjp`` differentiates one step (``cosim.engines.rigid_adjoint``: which blocks are closed form).
+contact (Bullet) between skeletons with ``collide`` and with an optional static ``ground`` (``GroundSpec``;
+not a skeleton of the state: no dofs, no body name). DART resolves a contact's penetration at no more than
+1 mm/s (its contact error reduction, not settable from Python): a body that lands at speed v sinks up to
+v dt in the landing step and rises back to the surface at 1 mm/s. ``vjp`` differentiates one step
+(``cosim.engines.rigid_adjoint``: which blocks are closed form).
 """
 
 from __future__ import annotations
@@ -24,7 +28,15 @@ import dartpy as dart
 import numpy as np
 
 from cosim.engines.rigid_adjoint import RigidAdjoint, StepRecord
-from cosim.engines.rigid_build import CONTROL_MODES, ShapeSpec, SkeletonSpec, build_skeleton, urdf_geometry
+from cosim.engines.rigid_build import (
+    CONTROL_MODES,
+    GroundSpec,
+    ShapeSpec,
+    SkeletonSpec,
+    build_ground,
+    build_skeleton,
+    urdf_geometry,
+)
 from cosim.errors import InputError, SimulationError
 
 _ORIGIN = np.zeros(3)
@@ -48,7 +60,8 @@ class Control:
 
 
 class RigidEngine(RigidAdjoint):
-    """One DART world holding the given skeletons (deactivation off, so replay from a state is bitwise)."""
+    """One DART world holding the given skeletons (deactivation off, so replay from a state is bitwise),
+    and ``ground``, a static floor the colliding skeletons rest on (needs ``collision``)."""
 
     def __init__(
         self,
@@ -56,9 +69,12 @@ class RigidEngine(RigidAdjoint):
         dt: float,
         gravity=(0.0, 0.0, -9.81),
         collision: bool = True,
+        ground: GroundSpec | None = None,
     ) -> None:
         if dt <= 0:
             raise InputError(f"rigid dt must be > 0, got {dt}")
+        if ground is not None and not collision:
+            raise InputError("a rigid ground needs collision on (nothing would touch it)")
         names = [s.name for s in skeleton_specs]
         if len(set(names)) != len(names):
             raise InputError(f"skeleton names must be unique, got {names}")
@@ -77,6 +93,8 @@ class RigidEngine(RigidAdjoint):
             self.world.addSkeleton(skel)
             for body in skel.getBodyNodes():
                 body.setCollidable(bool(collision and spec.collide))
+        if ground is not None:
+            self.world.addSkeleton(build_ground(ground))
         sizes = [s.getNumDofs() for s in self.skeletons]
         self._offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(int)
         self.dofs = int(self._offsets[-1])

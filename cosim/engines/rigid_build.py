@@ -18,6 +18,7 @@ from cosim.engines.rigid_specs import (
     CONTROL_MODES,
     JOINT_TYPES,
     SHAPE_KINDS,
+    GroundSpec,
     LinkSpec,
     ShapeSpec,
     SkeletonSpec,
@@ -34,10 +35,12 @@ __all__ = [
     "CONTROL_MODES",
     "JOINT_TYPES",
     "SHAPE_KINDS",
+    "GroundSpec",
     "LinkSpec",
     "ShapeSpec",
     "SkeletonSpec",
     "attach_shape",
+    "build_ground",
     "build_link_skeleton",
     "build_skeleton",
     "build_urdf_skeleton",
@@ -276,3 +279,22 @@ def build_skeleton(spec: SkeletonSpec):
     if (spec.urdf is None) == (not spec.links):
         raise InputError(f"skeleton '{spec.name}': give exactly one of 'links' or 'urdf'")
     return build_urdf_skeleton(spec) if spec.urdf is not None else build_link_skeleton(spec)
+
+
+def build_ground(spec: GroundSpec, name: str = "cosim_ground"):
+    """The immobile skeleton of a ``GroundSpec``: one welded box whose top face is the floor plane."""
+    if spec.up not in (0, 1, 2):
+        raise InputError(f"ground: 'up' must be an axis index 0, 1 or 2, got {spec.up}")
+    if spec.friction < 0 or spec.half_extent <= 0 or spec.thickness <= 0:
+        raise InputError("ground: friction must be >= 0, half_extent and thickness > 0")
+    size = [2.0 * spec.half_extent] * 3
+    size[spec.up] = spec.thickness
+    centre = [0.0, 0.0, 0.0]
+    centre[spec.up] = spec.height - 0.5 * spec.thickness
+    box = ShapeSpec("box", size=tuple(size))
+    link = LinkSpec("ground", [box], mass=1.0, joint="weld", origin_position=tuple(centre))
+    skel = build_link_skeleton(SkeletonSpec(name, links=[link]))
+    skel.setMobile(False)
+    for node in skel.getBodyNode(0).getShapeNodes():
+        node.getDynamicsAspect().setFrictionCoeff(float(spec.friction))
+    return skel

@@ -112,6 +112,22 @@ class SkeletonSpec:
     default_control: str = "passive"
 
 
+@dataclass
+class GroundSpec:
+    """A static floor for the rigid bodies: the half-space below ``height`` [m] along axis ``up``
+    (0 = x, 1 = y, 2 = z; scenes are y-up), as a DART box whose top face is that plane, ``half_extent`` [m]
+    to each side along the two other axes and ``thickness`` [m] deep (so a body that lands fast cannot
+    tunnel through it in one step). ``friction``: Coulomb coefficient of its surface; DART takes the
+    smaller of the two coefficients in a contact (links keep DART's default 1.0). It collides with the
+    skeletons that have ``collide`` (and only when the engine's ``collision`` is on)."""
+
+    height: float = 0.0
+    up: int = 2
+    friction: float = 1.0
+    half_extent: float = 100.0
+    thickness: float = 1.0
+
+
 # ----------------------------------------------------------------------------------------------- transforms
 
 

@@ -7,13 +7,15 @@ both the MPM contact geometry (an SDF in the body frame) and the link's uniform 
 distribution: mass, centre of mass and inertia are integrated over the SDF's inside, so
 a glass gets a glass's inertia, not a cylinder's. In 2D, DART still runs in 3D: free
 links get a planar joint (x, y, angle about z), revolute joints turn about z, and masses
-are per metre of depth like the MPM's.
+are per metre of depth like the MPM's. Skeletons with ``collide`` get DART collision shapes
+(2D: extruded 1 m along z, ``_planar_shapes``); ``articulated.ground`` adds a static DART
+floor, which the MPM does not see.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -29,7 +31,7 @@ from cosim.couplers.sdf import (
     shape_spec_sdf,
 )
 from cosim.engines import so3
-from cosim.engines.rigid_build import LinkSpec, ShapeSpec, SkeletonSpec
+from cosim.engines.rigid_build import GroundSpec, LinkSpec, ShapeSpec, SkeletonSpec
 from cosim.errors import SceneError
 from cosim.scene.shipped import resolve_asset
 
@@ -83,18 +85,64 @@ def _lift(v, dim: int, fill: float = 0.0):
     return None if v is None else tuple(list(v) + [fill] * (3 - len(v))) if dim == 2 else tuple(v)
 
 
-def _dart_shapes(shape, dim: int, offset) -> list[ShapeSpec]:
-    """DART collision shapes of a scene shape (3D primitives; y-axis shapes turned onto DART's z)."""
-    if dim == 2 or shape.type in ("mesh", "ring"):
+DEPTH_2D = 1.0  # [m] how far a 2D link's collision shape extends along z (see _planar_shapes)
+
+
+def _dart_shapes(shape, dim: int, offset, source_dir: Path) -> list[ShapeSpec]:
+    """DART collision shapes of a scene shape in its link frame (``offset`` [m] moves them).
+
+    3D: the primitive itself (y-axis shapes turned onto DART's z; a glass collides as its outer
+    cylinder) or the mesh file. 2D: ``_planar_shapes``. A ring has none (validation refuses a
+    colliding ring).
+    """
+    at = np.asarray(_lift(offset, dim) or (0.0, 0.0, 0.0), dtype=np.float64)
+    if dim == 2:
+        return [_moved(s, at) for s in _planar_shapes(shape)]
+    if shape.type == "ring":
         return []
-    at = tuple(offset) if offset is not None else (0.0, 0.0, 0.0)
+    if shape.type == "mesh":
+        path = str((Path(source_dir) / shape.file).resolve())
+        return [ShapeSpec("mesh", mesh=path, scale=(shape.scale,) * 3, position=tuple(at))]
     along_y = (-90.0, 0.0, 0.0)  # Rx(-90 deg) maps DART's z axis onto our y axis
     if shape.type == "box":
-        return [ShapeSpec("box", size=tuple(shape.size), position=at)]
+        return [ShapeSpec("box", size=tuple(shape.size), position=tuple(at))]
     if shape.type == "sphere":
-        return [ShapeSpec("sphere", radius=shape.radius, position=at)]
-    kind = "capsule" if shape.type == "capsule" else "cylinder"  # a glass collides as its outer cylinder
-    return [ShapeSpec(kind, radius=shape.radius, height=shape.height, position=at, rotation=along_y)]
+        return [ShapeSpec("sphere", radius=shape.radius, position=tuple(at))]
+    kind = "capsule" if shape.type == "capsule" else "cylinder"
+    return [ShapeSpec(kind, radius=shape.radius, height=shape.height, position=tuple(at), rotation=along_y)]
+
+
+def _planar_shapes(shape) -> list[ShapeSpec]:
+    """A 2D shape extruded DEPTH_2D along z, centred on z = 0, as DART primitives.
+
+    Every planar body lies in z = 0 (DART's xy-plane), so two extruded shapes overlap by the full
+    depth along z and Bullet's contact normal is always the in-plane one (an in-plane penetration
+    is millimetres, far below 1 m); the depth changes no force (DART's contacts are impulses, the
+    planar joint drops their out-of-plane moments) and matches the 2D convention of one metre of
+    depth. Box and the 2D cylinder (a rectangle): a box; disc (sphere): a cylinder along z;
+    capsule: a box and two end cylinders; glass: a bottom and two walls (a U, so things fit in it).
+    """
+    D = DEPTH_2D
+    if shape.type == "box":
+        return [ShapeSpec("box", size=(*shape.size, D))]
+    if shape.type == "sphere":
+        return [ShapeSpec("cylinder", radius=shape.radius, height=D)]
+    r, h = shape.radius, shape.height
+    if shape.type == "cylinder":
+        return [ShapeSpec("box", size=(2 * r, h, D))]
+    if shape.type == "capsule":
+        ends = [ShapeSpec("cylinder", radius=r, height=D, position=(0.0, y, 0.0)) for y in (-h / 2, h / 2)]
+        return [ShapeSpec("box", size=(2 * r, h, D)), *ends]
+    if shape.type == "glass":
+        t = shape.thickness
+        bottom = ShapeSpec("box", size=(2 * r, t, D), position=(0.0, (t - h) / 2, 0.0))
+        walls = [ShapeSpec("box", size=(t, h, D), position=(x, 0.0, 0.0)) for x in (t / 2 - r, r - t / 2)]
+        return [bottom, *walls]
+    return []  # a ring: refused by validation when it should collide
+
+
+def _moved(shape: ShapeSpec, by: np.ndarray) -> ShapeSpec:
+    return replace(shape, position=tuple(np.asarray(shape.position) + by))
 
 
 def _joint_values(value):
@@ -104,7 +152,7 @@ def _joint_values(value):
     return [float(value)] if isinstance(value, (int, float)) else [float(v) for v in value]
 
 
-def _link_spec(link, dim: int, grid: SDFGrid, collide: bool) -> LinkSpec:
+def _link_spec(link, dim: int, grid: SDFGrid, shapes: list[ShapeSpec]) -> LinkSpec:
     j = link.joint
     mass, com, inertia = mass_properties(grid, link.density, link.mass)
     joint = "planar" if (dim == 2 and j.type == "free") else j.type
@@ -114,7 +162,7 @@ def _link_spec(link, dim: int, grid: SDFGrid, collide: bool) -> LinkSpec:
         axis = _lift(j.axis, dim) or (0.0, 0.0, 1.0)
     return LinkSpec(
         name=link.name,
-        shapes=_dart_shapes(link.shape, dim, link.offset) if collide else [],
+        shapes=shapes,
         mass=mass,
         com=tuple(com),
         inertia=inertia,
@@ -141,7 +189,8 @@ def _skeleton_spec(skel, dim: int, dx: float, source_dir: Path, key: str) -> tup
         if link.offset is not None:
             grid.origin = grid.origin + np.asarray(link.offset, float)
         grids[link.name] = grid
-        links.append(_link_spec(link, dim, grid, skel.collide))
+        shapes = _dart_shapes(link.shape, dim, link.offset, source_dir) if skel.collide else []
+        links.append(_link_spec(link, dim, grid, shapes))
     spec = SkeletonSpec(name=skel.name, links=links, controls=dict(skel.controls), collide=skel.collide)
     return spec, grids
 
@@ -196,7 +245,10 @@ def build_articulated(scene, dx: float) -> Articulated:
         specs.append(s)
         link_grids.update({f"{skel.name}/{name}": g for name, g in grids.items()})
     gravity = _lift(scene.gravity, dim)
-    engine = RigidEngine(specs, scene.time.frame_dt, gravity=gravity, collision=spec.collision)
+    ground = None
+    if spec.ground is not None:  # y is up in scenes
+        ground = GroundSpec(height=spec.ground.height, up=1, friction=spec.ground.friction)
+    engine = RigidEngine(specs, scene.time.frame_dt, gravity=gravity, collision=spec.collision, ground=ground)
     coupled, names, grids = [], [], []
     for skel in spec.skeletons:
         for i, full in enumerate(engine.body_names):

@@ -179,8 +179,8 @@ _JOINT_DOFS = {"free": (3, 6), "revolute": (1, 1), "prismatic": (1, 1), "ball": 
 
 
 def articulated_problems(scene: Scene) -> list[str]:
-    """Skeletons: unique names, links or a URDF file (found), joints and controls that fit ``dim``."""
-    d = scene.dim
+    """Skeletons: unique names, links or a URDF file (found), joints and controls that fit ``dim``;
+    colliding links DART can collide; a ground with something to carry."""
     problems: list[str] = []
     skeletons = scene.articulated.skeletons
     names = [s.name for s in skeletons]
@@ -191,13 +191,28 @@ def articulated_problems(scene: Scene) -> list[str]:
             problems.append(f"{key}.name: '{skel.name}' is used twice; names must be unique")
         if (skel.urdf is None) == (not skel.links):
             problems.append(f"{key}: give either links (primitives) or urdf (a file), not both or neither")
-        if skel.collide and d == 2:
-            problems.append(f"{key}.collide: DART rigid-rigid collision is 3D only; set it false in 2D")
+        for j, link in enumerate(skel.links if skel.collide else []):
+            if link.shape.type == "ring":
+                problems.append(
+                    f"{key}.links[{j}].shape.type: a ring has no DART collision shape; "
+                    f"set {key}.collide: false, or build the link from boxes"
+                )
         if skel.urdf is not None:
             problems += _urdf_problems(key, skel, scene)
             continue
         problems += _links_problems(key, skel, scene)
-    return problems
+    return problems + _ground_problems(scene.articulated)
+
+
+def _ground_problems(spec) -> list[str]:
+    """A ground acts only through DART collision: it needs ``collision`` and a skeleton that collides."""
+    if spec.ground is None:
+        return []
+    if not spec.collision:
+        return ["articulated.ground: the ground acts through DART collision; set articulated.collision: true"]
+    if not any(s.collide for s in spec.skeletons):
+        return ["articulated.ground: no skeleton collides with it; set collide: true on the skeletons it carries"]
+    return []
 
 
 def _urdf_problems(key: str, skel, scene: Scene) -> list[str]:

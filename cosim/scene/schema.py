@@ -221,7 +221,7 @@ class SkeletonSceneSpec(Strict):
     package_dirs: dict[str, str] = {}  # urdf: package://name/ -> folder (relative to the scene)
     initial_positions: dict[str, float | Vec] = {}  # urdf: joint name -> position
     couple: Literal["all", "none"] | list[str] = "all"  # urdf: links the MPM sees
-    collide: bool = False  # DART rigid-rigid collision (3D)
+    collide: bool = False  # DART rigid-rigid collision (2D: shapes extruded 1 m along z), with articulated.collision
     controls: dict[str, Literal["torque", "velocity", "wrench", "twist"]] = {}  # joint name -> mode
 
 
@@ -240,12 +240,21 @@ class ActionSpec(Strict):
     scale: Positive | list[Positive] | None = None
 
 
+class GroundSceneSpec(Strict):
+    """A static floor for the DART bodies only (the MPM keeps its own walls): everything below
+    ``height`` along y (scenes are y-up). Skeletons with ``collide: true`` rest on it."""
+
+    height: float = 0.0  # [m] the floor's top
+    friction: Annotated[float, Field(ge=0)] = 1.0  # Coulomb coefficient (DART takes the smaller of a pair's)
+
+
 class ArticulatedSpec(Strict):
     """Articulated rigid bodies simulated by DART and coupled two-way with the MPM."""
 
     skeletons: Annotated[list[SkeletonSceneSpec], Field(min_length=1)]
     actions: ActionSpec = ActionSpec()
     collision: bool = False  # DART rigid-rigid collision for skeletons with collide: true
+    ground: GroundSceneSpec | None = None  # a static DART floor (needs collision: true)
 
 
 class ClothMeshSpec(Strict):
