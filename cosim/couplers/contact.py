@@ -15,6 +15,8 @@ about the body origin.
 import taichi as ti
 
 STANDARD_GRAVITY = 9.80665  # [m/s^2] the unit of the particle model's stiffness
+BLEND_WHERE = ("liquids", "all", "none")  # forecast: which particles get the paper's blended BC_p
+AUTO_OFFSET = -1.0  # a contact offset below 0: each particle's radius (``surface_offset``)
 TAPER = 0.25  # forecast: the fraction of the threshold over which BC_p's weight falls to 0
 
 
@@ -33,13 +35,43 @@ def frictional_bc(v, n, vc, friction):
     return out
 
 
+@ti.func
+def surface_offset(engine: ti.template(), offset: ti.template(), p):
+    """[m] How far from a surface particle p's centre is held: ``offset`` if >= 0, else (AUTO_OFFSET)
+    the particle's radius, so that its material, not its centre, meets the geometry. (An expression,
+    not a branch: Taichi's adjoint of a local variable assigned in a static branch came out wrong.)"""
+    return ti.static(float(offset < 0)) * engine.radius_of(p) + ti.static(max(offset, 0.0))
+
+
+@ti.func
+def speculative_bc(v, n, vc, friction, gap, dt):
+    """Velocity v after a look-ahead contact with a surface ``gap`` [m] away (outward normal n, moving
+    with vc): the relative normal velocity may approach at most at -gap/dt, so the particle reaches
+    the surface at the end of the substep and no sooner (gap < 0: it leaves the surface at -gap/dt);
+    the tangential part loses Coulomb friction mu times the normal velocity taken away. Continuous in
+    v, gap and the surface's motion; nothing changes for a particle that would not reach the surface
+    within dt, so an approaching body is not braked before it touches (no dashpot, see ForecastContact)."""
+    rel = v - vc
+    vn = rel.dot(n)
+    vt = rel - vn * n
+    vn_new = ti.max(vn, -gap / dt)
+    vt_norm = ti.sqrt(vt.norm_sqr() + 1e-20)
+    return vc + vn_new * n + ti.max(0.0, 1.0 - friction * (vn_new - vn) / vt_norm) * vt
+
+
 @ti.data_oriented
 class GridContact:
-    """Grid contact model: at grid nodes with signed distance below ``band`` (default half a
-    cell: nodes strictly inside let a thick wall be entered by 0.8 dx, measured; a source may
-    set its own ``grid_band``: a cloth, two-sided and thin, needs a full cell), the
-    velocity relative to the body loses its approaching normal part and its tangential
-    part is reduced by Coulomb friction: v_t * max(0, 1 - mu |v_n| / |v_t|)."""
+    """Grid contact model: at grid nodes closer to a body than ``band`` (default half a cell; 0 puts
+    the surface where the geometry is, but then walls thinner than about 3 cells leak: see
+    docs/contact.md; a source may set its own ``grid_band``: a cloth, two-sided and thin, needs a
+    full cell), the
+    velocity relative to the body loses its approaching normal part and its tangential part is
+    reduced by Coulomb friction, v_t max(0, 1 - mu |dv_n| / |v_t|). Beyond the band the constraint
+    fades in continuously (``speculative_bc`` with the node's gap d - band): a node keeps any
+    approach that would not carry material across the band within the substep. A hard switch at
+    the band (the classic model) made every loss through contact piecewise smooth with jumps, and a
+    band half a cell outside held material half a cell off the surface (measured: a floating box
+    0.45-0.55 cells too high at 64 cells)."""
 
     def __init__(self, engine, sources: list, friction: float, band: float | None = None):
         self.engine = engine
@@ -61,10 +93,12 @@ class GridContact:
                 for src in ti.static(self.sources):
                     for b in ti.static(range(src.n)):
                         d, n = src.distance_normal(s, b, xi, -1)
-                        if d < ti.static(getattr(src, "grid_band", self.band)):
-                            v_new = frictional_bc(v, n, src.contact_velocity(s, b, xi, -1), self.friction)
-                            dp = m * (v_new - v)  # momentum given to the material
-                            src.add_reaction(s, b, xi, dp, -1)
+                        gap = d - ti.static(getattr(src, "grid_band", self.band))
+                        # a node a cell beyond the band keeps its velocity unless material crosses a cell per substep
+                        if gap < e.dx:
+                            vc = src.contact_velocity(s, b, xi, -1)
+                            v_new = speculative_bc(v, n, vc, self.friction, ti.max(gap, 0.0), dt)
+                            src.add_reaction(s, b, xi, m * (v_new - v), -1)  # momentum given to the material
                             v = v_new
             self.output[g, I] = v
 
@@ -88,8 +122,9 @@ class GridContact:
 
 @ti.data_oriented
 class ParticlePenalty:
-    """Particle contact model: a particle at signed distance d < 0 from a body receives
-    the penalty force F = -k g0 m_p (d / dx) n, plus Coulomb friction (the tangential
+    """Particle contact model: a particle closer to a body than its offset (default its radius,
+    see ``surface_offset``), gap = d - offset < 0, receives the penalty force
+    F = -k g0 m_p (gap / dx) n, plus Coulomb friction (the tangential
     velocity relative to the body is reduced by at most mu |F_n| dt / m_p), added as
     momentum in P2G.
 
@@ -98,9 +133,10 @@ class ParticlePenalty:
     mean the same penetration in cells at any particle size and resolution; the paper's
     k = 400 / 600 land in the range where the penetration-vs-rebound trade-off shows."""
 
-    def __init__(self, engine, sources: list, stiffness: float, friction: float):
+    def __init__(self, engine, sources: list, stiffness: float, friction: float, offset: float | None = None):
         self.engine = engine
         self.sources = list(sources)
+        self.offset = AUTO_OFFSET if offset is None else float(offset)
         self.stiffness = float(stiffness)
         self.accel_per_depth = self.stiffness * STANDARD_GRAVITY / engine.dx  # [1/s^2]
         self.friction = float(friction)
@@ -118,8 +154,9 @@ class ParticlePenalty:
             for source in ti.static(self.sources):
                 for b in ti.static(range(source.n)):
                     d, n = source.distance_normal(s, b, x, p)
-                    if d < 0:
-                        jn = -self.accel_per_depth * m * d * dt  # normal impulse, along +n
+                    gap = d - surface_offset(e, self.offset, p)
+                    if gap < 0:
+                        jn = -self.accel_per_depth * m * gap * dt  # normal impulse, along +n
                         rel = v - source.contact_velocity(s, b, x, p)
                         vt = rel - rel.dot(n) * n
                         vt_norm = ti.sqrt(vt.norm_sqr() + 1e-20)
@@ -157,13 +194,24 @@ class ForecastContact:
     with bare weights equals ours at alpha = 0.2 x sum_p w_ip ~ 0.2 x particles per cell:
     0.8 in 2D (the default here; 4 particles per cell at spacing dx/2), 1.6 in 3D.
 
-    BC_p for a particle at signed distance d < d_hat from a body, contact velocity v_c:
-    the relative velocity loses its approaching normal part and its tangential part is
-    reduced by Coulomb friction, v_out = v_c + v_t max(0, 1 - mu |v_n| / |v_t|); blended
-    with the input by s = min(exp(-beta d), 1) (tapered to 0 over the last quarter of d_hat so
-    that s is continuous where a particle enters the band); if x + dt v_out would end inside the body,
-    v_out gains -d_new / dt along the normal there (advect and project). Bodies within
-    d_hat of one particle apply BC_p in turn.
+    BC_p for a particle whose gap g = d - offset to a body (d its signed distance, offset its
+    radius by default: ``surface_offset``) is below d_hat, contact velocity v_c, takes one of two
+    forms, chosen per particle by ``blend`` (liquids | all | none):
+    - blended (the paper's BC_p; by default for liquid particles): the approaching normal part is
+      removed whatever the gap, v_out = v_c + v_t max(0, 1 - mu |v_n| / |v_t|), and blended with
+      the input by s = min(exp(-beta g), 1), tapered to 0 over the last quarter of d_hat so that s
+      is continuous where a particle enters the band. Applied every substep, that blend is a
+      dashpot of rate s / dt on everything inside the band: liquid meets a wall without rebound
+      (0 rebounds in ``cosim bench contact``, 15 without it), but an elastic body is braked before
+      it touches (restitution of a disc thrown at a wall: 0.27 at 0.3 m/s and 0.73 at 1 m/s,
+      against 0.94 at the MPM domain wall).
+    - speculative (``speculative_bc``; solids by default): the relative normal velocity may
+      approach at most at -g / dt, so the particle reaches the surface at the end of the substep
+      and no sooner; the tangential part loses Coulomb friction for the normal velocity removed
+      (restitution 0.89 and 0.87 there).
+    Then, if x + dt v_out would end closer than the offset, v_out gains the missing distance / dt
+    along the normal there (advect and project). Bodies within d_hat of one particle apply BC_p
+    in turn.
 
     Reactions: the residual r = v_init - v_tgt is the sum of each body's share r_b (the
     velocity its BC_p removed), and body b receives alpha m_p r_b, minus the grid momentum
@@ -176,16 +224,22 @@ class ForecastContact:
         engine,
         sources: list,
         friction: float,
-        alpha: float = 0.8,
+        alpha: float | None = None,
         threshold: float | None = None,
         beta: float | None = None,
+        blend: str = "liquids",
+        offset: float | None = None,
     ):
         self.engine = engine
         self.sources = list(sources)
         self.friction = float(friction)
-        self.alpha = float(alpha)
+        self.alpha = (0.8 if engine.dim == 2 else 0.3) if alpha is None else float(alpha)
         self.threshold = engine.dx if threshold is None else float(threshold)
         self.beta = 2.0 / engine.dx if beta is None else float(beta)
+        if blend not in BLEND_WHERE:
+            raise ValueError(f"forecast blend must be one of {BLEND_WHERE}, got {blend!r}")
+        self.blend_where = blend
+        self.offset = AUTO_OFFSET if offset is None else float(offset)
         grad = engine.cfg.requires_grad
         d = engine.dim
         per_particle = engine.affine.shape  # (grid copies, particles)
@@ -206,7 +260,7 @@ class ForecastContact:
         for source in ti.static(self.sources):
             for b in ti.static(range(source.n)):
                 nearest = ti.min(nearest, source.distance(s, b, x, p))
-        return ti.select(nearest < self.threshold, 1, 0)
+        return ti.select(nearest - surface_offset(self.engine, self.offset, p) < self.threshold, 1, 0)
 
     @ti.func
     def _constrain(self, s, x, p, v_init, m_p, dt):
@@ -218,13 +272,23 @@ class ForecastContact:
         for source in ti.static(self.sources):
             for b in ti.static(range(source.n)):
                 d, n = source.distance_normal(s, b, x, p)
-                if d < self.threshold:
-                    v_out = frictional_bc(v, n, source.contact_velocity(s, b, x, p), self.friction)
-                    smooth = self.blend(d)
-                    v_out = smooth * v_out + (1.0 - smooth) * v
+                offset = surface_offset(self.engine, self.offset, p)
+                if d - offset < self.threshold:
+                    vc = source.contact_velocity(s, b, x, p)
+                    v_out = v
+                    blended = 0
+                    if ti.static(self.blend_where == "all"):
+                        blended = 1
+                    elif ti.static(self.blend_where == "liquids"):
+                        blended = self.engine.is_liquid(p)
+                    if blended:
+                        smooth = self.blend(d - offset)
+                        v_out = smooth * frictional_bc(v, n, vc, self.friction) + (1.0 - smooth) * v
+                    else:
+                        v_out = speculative_bc(v, n, vc, self.friction, d - offset, dt)
                     d_new, n_new = source.distance_normal(s, b, x + dt * v_out, p)
-                    if d_new < 0:
-                        v_out += (-d_new / dt) * n_new
+                    if d_new < offset:
+                        v_out += ((offset - d_new) / dt) * n_new
                     source.add_reaction(s, b, x, (-self.alpha * m_p) * (v - v_out), p)
                     v = v_out
         return v
@@ -369,6 +433,13 @@ def attach_contact(engine, sources: list, settings) -> object:
         return GridContact(engine, sources, settings.friction, settings.band)
     if settings.model == "forecast":
         return ForecastContact(
-            engine, sources, settings.friction, settings.alpha, settings.threshold, settings.smoothing
+            engine,
+            sources,
+            settings.friction,
+            settings.alpha,
+            settings.threshold,
+            settings.smoothing,
+            settings.blend,
+            settings.offset,
         )
-    return ParticlePenalty(engine, sources, settings.stiffness, settings.friction)
+    return ParticlePenalty(engine, sources, settings.stiffness, settings.friction, settings.offset)

@@ -105,6 +105,8 @@ class MPMKernels:
         self.viscosity = ti.field(float, shape=nb)
         self.p_mass = ti.field(float, shape=nb)
         self.p_vol = ti.field(float, shape=nb)
+        self.p_radius = ti.field(float, shape=nb)  # [m] half the lattice spacing
+        self.p_liquid = ti.field(ti.i32, shape=nb)  # 1 for a liquid body
         self.body_id = ti.field(ti.i32, shape=n)  # which body each particle belongs to
         # Grid and per-particle stress scratch: one copy per substep with
         # gradients (the adjoint reads them back instead of recomputing P2G),
@@ -129,6 +131,8 @@ class MPMKernels:
         self.viscosity.from_numpy(self._real([b.viscosity for b in bodies]))
         self.p_mass.from_numpy(self._real([b.particle_mass for b in bodies]))
         self.p_vol.from_numpy(self._real([b.particle_volume for b in bodies]))
+        self.p_radius.from_numpy(self._real([0.5 * b.particle_volume ** (1.0 / d) for b in bodies]))
+        self.p_liquid.from_numpy(np.array([b.material == "liquid" for b in bodies], dtype=np.int32))
         self.mass = np.concatenate([np.full(b.n, b.particle_mass) for b in bodies])
         self.body_id.from_numpy(np.concatenate([np.full(b.n, i, dtype=np.int32) for i, b in enumerate(bodies)]))
         self._serial = bool(config.serial_p2g)
@@ -180,6 +184,17 @@ class MPMKernels:
     def mass_of(self, p):
         """Mass [kg] of particle p."""
         return self.p_mass[self.body_id[p]]
+
+    @ti.func
+    def radius_of(self, p):
+        """Half the lattice spacing [m] of particle p (its volume's side / 2): how far its material
+        reaches beyond its centre."""
+        return self.p_radius[self.body_id[p]]
+
+    @ti.func
+    def is_liquid(self, p):
+        """1 if particle p belongs to a liquid body, else 0."""
+        return self.p_liquid[self.body_id[p]]
 
     @ti.func
     def _lame(self, b):

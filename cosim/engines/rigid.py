@@ -353,6 +353,18 @@ class RigidEngine(RigidAdjoint):
             raise InputError(f"rigid body '{name}' is {'ambiguous' if hits else 'unknown'}; bodies: {self.body_names}")
         return hits[0]
 
+    def welded_parent(self, index: int) -> int | None:
+        """Index of the body that body ``index`` is welded to (a fixed joint), or None."""
+        k, body = self._bodies[index]
+        parent = body.getParentBodyNode()
+        if parent is None or body.getParentJoint().getType() != "WeldJoint":
+            return None
+        return next(i for i, (j, b) in enumerate(self._bodies) if j == k and b.getName() == parent.getName())
+
+    def body_transform(self, index: int) -> np.ndarray:
+        """The 4x4 world transform of body ``index`` now."""
+        return np.asarray(self._bodies[index][1].getWorldTransform().matrix(), dtype=np.float64)
+
     def link_geometry(self, body_name: str) -> list[tuple[ShapeSpec, np.ndarray]]:
         """Collision shapes of a body with their 4x4 pose in the body frame (mesh paths absolute)."""
         k, body = self._bodies[self.body_index(body_name)]

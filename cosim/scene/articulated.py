@@ -34,6 +34,7 @@ from cosim.engines import so3
 from cosim.engines.rigid_build import GroundSpec, LinkSpec, ShapeSpec, SkeletonSpec
 from cosim.errors import SceneError
 from cosim.scene.shipped import resolve_asset
+from cosim.scene.welded import merge_welded
 
 
 @dataclass
@@ -266,6 +267,7 @@ def build_articulated(scene, dx: float) -> Articulated:
             coupled.append(i)
             names.append(full)
             grids.append(grid)
+    coupled, names, grids = merge_welded(engine, coupled, names, grids, dim, 3 * dx)
     n_segments = math.ceil(scene.steps / spec.actions.hold)
     return Articulated(engine, coupled, names, grids, n_segments, spec.actions.hold)
 
