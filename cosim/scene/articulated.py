@@ -146,6 +146,22 @@ def _moved(shape: ShapeSpec, by: np.ndarray) -> ShapeSpec:
     return replace(shape, position=tuple(np.asarray(shape.position) + by))
 
 
+_CENTRED = ("box", "sphere", "cylinder", "capsule", "ring")  # the centre of mass is the shape's centre
+
+
+def _symmetric_com(shape, com: np.ndarray, centre) -> np.ndarray:
+    """The integrated centre of mass with what symmetry fixes set exactly: the shape's centre for
+    symmetric primitives, the axis (x, z) for a glass. The SDF grid is not centred on the shape, so
+    integration puts a disc's centre of mass ~0.2 mm off its centre (at 4 cm radius, dx/2 spacing),
+    enough to make a disc resting on a floor rock like an eccentric wheel (rolling ~10 cm)."""
+    out = np.asarray(com, dtype=np.float64).copy()
+    if shape.type in _CENTRED:
+        out[:] = centre
+    elif shape.type == "glass":
+        out[[0, 2]] = np.asarray(centre, dtype=np.float64)[[0, 2]]
+    return out
+
+
 def _joint_values(value):
     """Scene q0/qd0 in DART's joint coordinates (2D free = planar: [x, y, angle])."""
     if value is None:
@@ -156,6 +172,7 @@ def _joint_values(value):
 def _link_spec(link, dim: int, grid: SDFGrid, shapes: list[ShapeSpec]) -> LinkSpec:
     j = link.joint
     mass, com, inertia = mass_properties(grid, link.density, link.mass)
+    com = _symmetric_com(link.shape, com, _lift(link.offset, dim) or (0.0, 0.0, 0.0))
     joint = "planar" if (dim == 2 and j.type == "free") else j.type
     if dim == 2 and j.type == "revolute":
         axis = (0.0, 0.0, 1.0)
