@@ -112,7 +112,14 @@ def optimize_scene(
     }
     (out / "optimization.json").write_text(json.dumps(summary, indent=2))
     recorder = Recorder(sim)
-    obj.rollout(result.params, on_step=lambda n: recorder(n) if n == 0 or recorder.wants(n) else None)
+
+    def record(n: int) -> None:  # every step's reactions, the saved frames' states
+        if n > 0:
+            recorder.step(n)
+        if n == 0 or recorder.wants(n):
+            recorder(n)
+
+    obj.rollout(result.params, on_step=record)
     shown = recorder.write(out, preview=preview)
     written = ["params.npz", "optimization.json", "optimization.csv", "loss.png", "trajectory.npz"]
     written += ["checkpoint.npz"] if method != "lbfgs" else []  # scipy's L-BFGS-B is not checkpointed

@@ -123,8 +123,12 @@ class ContainerRun:
             "energy_excess": sim.conservation.excess,  # largest (E - E0 - W) / scale: > 0 is energy from nowhere
             "_frame": (x.copy(), center.copy(), self.ring.shape.radius, self.thickness),
         }
-        if getattr(self.hook, "objective_ratios", None):
-            out["objective_decrease"] = float(1 - np.mean(self.hook.objective_ratios))
+        if getattr(self.hook, "objective_terms", None):
+            before, after = np.asarray(self.hook.objective_terms).T
+            # the median substep's decrease (a mean of ratios is swamped by substeps where the
+            # objective before is round-off), and that of the objective summed over all substeps
+            out["objective_decrease"] = float(1 - np.median(after / before))
+            out["objective_decrease_total"] = float(1 - after.sum() / before.sum())
         return out
 
 
@@ -253,9 +257,9 @@ def run_contact_bench(
         lines += [
             "",
             (
-                f"Forecast objective |W^T v_g - v_tgt|^2: average decrease per substep "
-                f"{100 * tracked['objective_decrease']:.1f}% over {min(steps, 200)} frames "
-                "(the paper reports 83.1% at its alpha = 0.2)."
+                f"Forecast objective |W^T v_g - v_tgt|^2 over {min(steps, 200)} frames: decrease in the median "
+                f"substep {100 * tracked['objective_decrease']:.1f}%, over all substeps summed "
+                f"{100 * tracked['objective_decrease_total']:.1f}% (the paper: 83.1% on average at its alpha = 0.2)."
             ),
         ]
     (out_dir / "contact.md").write_text("\n".join(lines) + "\n")

@@ -61,17 +61,14 @@ def speculative_bc(v, n, vc, friction, gap, dt):
 
 @ti.data_oriented
 class GridContact:
-    """Grid contact model: at grid nodes closer to a body than ``band`` (default half a cell; 0 puts
-    the surface where the geometry is, but then walls thinner than about 3 cells leak: see
-    docs/contact.md; a source may set its own ``grid_band``: a cloth, two-sided and thin, needs a
-    full cell), the
+    """Grid contact model: at grid nodes closer to a body than ``band`` (default half a cell; with 0,
+    walls thinner than about 3 cells leak: docs/contact.md; a source may set its own ``grid_band``:
+    a cloth, two-sided and thin, needs a full cell), the
     velocity relative to the body loses its approaching normal part and its tangential part is
     reduced by Coulomb friction, v_t max(0, 1 - mu |dv_n| / |v_t|). Beyond the band the constraint
     fades in continuously (``speculative_bc`` with the node's gap d - band): a node keeps any
     approach that would not carry material across the band within the substep. A hard switch at
-    the band (the classic model) made every loss through contact piecewise smooth with jumps, and a
-    band half a cell outside held material half a cell off the surface (measured: a floating box
-    0.45-0.55 cells too high at 64 cells)."""
+    the band (the classic model) made every loss through contact piecewise smooth with jumps."""
 
     def __init__(self, engine, sources: list, friction: float, band: float | None = None):
         self.engine = engine
@@ -248,9 +245,9 @@ class ForecastContact:
         self.constrained = ti.field(ti.i32, shape=per_particle)
         self.correction = ti.Vector.field(d, float, shape=engine.grid_v.shape, needs_grad=grad)
         self.scratch = [self.correction]  # zeroed by the engine with the grid each substep
-        # benchmarks: the objective after / before the gradient step, per substep (a host sync each)
+        # benchmarks: the objective (before, after) the gradient step, per substep (a host sync each)
         self.track_objective = False
-        self.objective_ratios: list[float] = []
+        self.objective_terms: list[tuple[float, float]] = []
         self.upstream = engine.attach_grid_hook(self)
 
     @ti.func
@@ -415,7 +412,7 @@ class ForecastContact:
         if self.track_objective:
             before, after = self._objective(src, g)
             if before > 0:
-                self.objective_ratios.append(after / before)
+                self.objective_terms.append((float(before), float(after)))
 
     def apply_grad(self, src: int, g: int, s: int, dt: float) -> None:
         self._scatter_adjoint(src, g)

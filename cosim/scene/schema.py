@@ -331,7 +331,7 @@ class ContactSpec(Strict):
     model: Literal["grid", "particle", "forecast"] = "grid"
     friction: Annotated[float, Field(ge=0)] = 0.0  # Coulomb coefficient
     # [m] grid model: nodes closer than this are fully constrained, beyond it the constraint fades in; default
-    # dx / 2; 0 puts the surface where the geometry is (then walls thinner than about 3 cells leak)
+    # dx / 2 (smaller bands let walls thinner than about 3 cells leak)
     band: Annotated[float, Field(ge=0)] | None = None
     stiffness: Positive = 600.0  # particle model: push one cell deep, in units of g (see ParticlePenalty)
     # forecast: gradient step (mass-normalised); default 0.8 in 2D, 0.3 in 3D (more spreads each particle's
