@@ -55,6 +55,17 @@ def taichi_float64():
     ensure_taichi("cpu", "float64")
 
 
+@pytest.fixture(autouse=True)
+def keeps_the_sessions_taichi():
+    """Fails a test that leaves Taichi re-initialised in another precision or arch: every later test
+    of its worker would run in it (a float32 scene built in-process once made SDF and cloth tests
+    of the same worker fail)."""
+    yield
+    from cosim.runtime import current
+
+    assert current() in (None, ("cpu", "float64")), f"Taichi left at {current()}: run such a case in a subprocess"
+
+
 def scene_dict(**overrides) -> dict:
     """A small valid 2D scene as Python data; ``overrides`` replace top-level keys."""
     base = {

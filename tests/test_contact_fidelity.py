@@ -179,7 +179,7 @@ def tub_scene(model: str, seconds: float, cells: int = 64) -> dict:
     return {
         "name": "tub",
         "dim": 2,
-        "precision": "float32",
+        "precision": "float64",  # the session's: another precision would re-initialise Taichi for later tests
         "steps": round(seconds / 4e-3),
         "time": {"frame_dt": 4e-3, "substeps": "auto"},
         "mpm": {"grid": {"cells": cells}, "boundary": {"type": "slip", "thickness": 3}, "bodies": [water]},
@@ -279,7 +279,7 @@ def test_a_resting_block_sits_where_the_geometry_is(model):
     from cosim.bench.accuracy_problem import Setting
 
     problem = RestingBlock()
-    observation = problem.run(Setting(64, 0.3, "float32", model))
+    observation = problem.run(Setting(64, 0.3, "float64", model))  # the session's precision
     assert problem.error(observation, None) * problem.side * 64 < 0.15
     assert observation["inside"] == 0
 
@@ -296,6 +296,6 @@ def test_a_floating_box_sits_at_its_archimedes_draft(model, ratio):
 
     problem = FloatingBox()
     problem.density, problem.duration = 1000.0 * ratio, 2.5
-    observation = problem.run(Setting(64, 0.3, "float32", model))
+    observation = problem.run(Setting(64, 0.3, "float64", model))  # the session's precision
     draft_error = (observation["fraction"] - ratio) * problem.size[1]  # [m]
     assert abs(draft_error) * 64 < 0.15, draft_error * 64

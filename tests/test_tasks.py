@@ -12,7 +12,7 @@ from conftest import check_task_improves
 
 # task: (macro steps of the shortened rollout, the largest loss ratio after 3 iterations accepted)
 TASKS = {
-    "pull_door": (30, 0.99),  # measured: 0.2198 -> 0.2154 (-2.0%)
+    "pull_door": (30, 0.97),  # measured: 0.2317 -> 0.2176 (-6.1%)
     "pour_water": (10, 0.995),  # measured: 0.1512 -> 0.1493 (-1.2%)
 }
 

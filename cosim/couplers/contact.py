@@ -16,19 +16,24 @@ import taichi as ti
 
 STANDARD_GRAVITY = 9.80665  # [m/s^2] the unit of the particle model's stiffness
 BLEND_WHERE = ("liquids", "all", "none")  # forecast: which particles get the paper's blended BC_p
-SOFT = 1e-4  # [cells] the width over which every contact switch is rounded (``soft_ramp``)
+SOFT = 0.05  # [cells] the width over which every contact switch is rounded (``soft_ramp``)
 AUTO_OFFSET = -1.0  # a contact offset below 0: each particle's radius (``surface_offset``)
 TAPER = 0.25  # forecast: the fraction of the threshold over which BC_p's weight falls to 0
 
 
 @ti.func
 def soft_ramp(z, width):
-    """max(z, 0) made C1: 0 below 0, z^2 / (2 width) up to ``width``, z - width / 2 beyond. Every
-    contact switch goes through it, so no loss has a kink there (with a bare max, particles reaching
-    the surface one after another put kinks so densely along any direction that central
-    differences at a relative step of 1e-6 were off by 1.6e-5, measured on pour_franka)."""
-    inner = ti.min(ti.max(z, 0.0), width)
-    return inner * inner / (2.0 * width) + ti.max(z - width, 0.0)
+    """max(z, 0) made C1 from above: 0 below -width / 2, (z + width / 2)^2 / (2 width) up to width / 2,
+    z beyond; never below max(z, 0), so a rounded push or approach limit never lets a particle past
+    the surface (one rounded from below let 4 of make_taco's particles through the tortilla). Every
+    contact switch goes through it, so no loss has a kink there: with a bare max, particles reaching
+    the surface one after another put kinks so densely along any direction that central differences
+    at gradcheck's step were off by 1.6e-5 (pour_franka, 10 steps). The width trades that against
+    curvature: resting contact sits in the rounded part, and central differences on pull_door
+    (30 steps) were off by 6e-2, 6e-4, 6e-6 and 1e-6 at widths of 1e-6, 1e-4, 1e-2 and 0.05 cells;
+    a particle resting on a surface then sits up to width / 8 off it."""
+    inner = ti.min(ti.max(z + 0.5 * width, 0.0), width)
+    return inner * inner / (2.0 * width) + ti.max(z - 0.5 * width, 0.0)
 
 
 @ti.func
@@ -37,6 +42,21 @@ def surface_offset(engine: ti.template(), offset: ti.template(), p):
     the particle's radius, so that its material, not its centre, meets the geometry. (An expression,
     not a branch: Taichi's adjoint of a local variable assigned in a static branch came out wrong.)"""
     return ti.static(float(offset < 0)) * engine.radius_of(p) + ti.static(max(offset, 0.0))
+
+
+def default_alpha(dim: int, sources: list) -> float:
+    """The forecast model's gradient step: 0.8 in 2D; in 3D 0.3 (0.8 spread each particle's correction
+    over its 27 nodes' neighbours and cost an elastic sphere a tenth of its restitution), but 0.8 with a
+    cloth sheet (at 0.3, 46 of make_taco's filling particles crossed the tortilla)."""
+    if dim == 2 or any(getattr(src, "sheet", False) for src in sources):
+        return 0.8
+    return 0.3
+
+
+def source_offset(source, offset: float) -> float:
+    """The offset [m] (AUTO_OFFSET: the particle's radius) a contact model keeps from ``source``: 0 from
+    a cloth sheet (``sheet``), whose contact keeps the paper's form."""
+    return 0.0 if getattr(source, "sheet", False) else offset
 
 
 @ti.func
@@ -150,7 +170,7 @@ class ParticlePenalty:
             for source in ti.static(self.sources):
                 for b in ti.static(range(source.n)):
                     d, n = source.distance_normal(s, b, x, p)
-                    gap = d - surface_offset(e, self.offset, p)
+                    gap = d - surface_offset(e, ti.static(source_offset(source, self.offset)), p)
                     if gap < 0:
                         jn = self.accel_per_depth * m * soft_ramp(-gap, SOFT * e.dx) * dt  # normal impulse, along +n
                         rel = v - source.contact_velocity(s, b, x, p)
@@ -229,7 +249,7 @@ class ForecastContact:
         self.engine = engine
         self.sources = list(sources)
         self.friction = float(friction)
-        self.alpha = (0.8 if engine.dim == 2 else 0.3) if alpha is None else float(alpha)
+        self.alpha = default_alpha(engine.dim, self.sources) if alpha is None else float(alpha)
         self.threshold = engine.dx if threshold is None else float(threshold)
         self.beta = 2.0 / engine.dx if beta is None else float(beta)
         if blend not in BLEND_WHERE:
@@ -254,9 +274,10 @@ class ForecastContact:
         """1 if a body is closer to x than the threshold (only those particles look ahead), else 0."""
         nearest = 1e30
         for source in ti.static(self.sources):
+            offset = surface_offset(self.engine, ti.static(source_offset(source, self.offset)), p)
             for b in ti.static(range(source.n)):
-                nearest = ti.min(nearest, source.distance(s, b, x, p))
-        return ti.select(nearest - surface_offset(self.engine, self.offset, p) < self.threshold, 1, 0)
+                nearest = ti.min(nearest, source.distance(s, b, x, p) - offset)
+        return ti.select(nearest < self.threshold, 1, 0)
 
     @ti.func
     def _constrain(self, s, x, p, v_init, m_p, dt):
@@ -268,12 +289,12 @@ class ForecastContact:
         for source in ti.static(self.sources):
             for b in ti.static(range(source.n)):
                 d, n = source.distance_normal(s, b, x, p)
-                offset = surface_offset(self.engine, self.offset, p)
+                offset = surface_offset(self.engine, ti.static(source_offset(source, self.offset)), p)
                 if d - offset < self.threshold:
                     vc = source.contact_velocity(s, b, x, p)
                     v_out = v
                     blended = 0
-                    if ti.static(self.blend_where == "all"):
+                    if ti.static(self.blend_where == "all" or getattr(source, "sheet", False)):
                         blended = 1
                     elif ti.static(self.blend_where == "liquids"):
                         blended = self.engine.is_liquid(p)

@@ -334,8 +334,8 @@ class ContactSpec(Strict):
     # dx / 2 (smaller bands let walls thinner than about 3 cells leak)
     band: Annotated[float, Field(ge=0)] | None = None
     stiffness: Positive = 600.0  # particle model: push one cell deep, in units of g (see ParticlePenalty)
-    # forecast: gradient step (mass-normalised); default 0.8 in 2D, 0.3 in 3D (more spreads each particle's
-    # correction over its neighbours and dissipates: elastic restitution 0.79 at 0.8 against 0.91, 3D)
+    # forecast: gradient step (mass-normalised); default 0.8 in 2D and with a cloth, else 0.3 in 3D (more
+    # spreads each particle's correction over its neighbours: 3D elastic restitution 0.79 at 0.8, 0.83 at 0.3)
     alpha: Annotated[float, Field(gt=0, le=2)] | None = None
     threshold: Positive | None = None  # [m] forecast: contact distance d_hat, default dx
     smoothing: Positive | None = None  # [1/m] forecast with blend: beta of s = min(exp(-beta d), 1), default 2 / dx
