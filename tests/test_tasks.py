@@ -12,12 +12,17 @@ from conftest import check_task_improves
 
 # task: (macro steps of the shortened rollout, the largest loss ratio after 3 iterations accepted)
 TASKS = {
-    "pull_door": (30, 0.97),  # measured: 0.2317 -> 0.2176 (-6.1%)
+    # the whole rollout: on 30-100 steps the gripper only starts to touch the handle and Adam's first
+    # steps (lr x scale on each of the 23,400 impulses) raise the loss; measured 0.0877 -> 0.0348
+    "pull_door": (150, 0.6),
     "pour_water": (10, 0.995),  # measured: 0.1512 -> 0.1493 (-1.2%)
 }
+LONG = {"pull_door"}  # with the four 3D tasks: -m long_task
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("task", sorted(TASKS))
+@pytest.mark.parametrize(
+    "task", [pytest.param(t, marks=[pytest.mark.long_task] if t in LONG else []) for t in sorted(TASKS)]
+)
 def test_three_iterations_lower_the_loss(task, tmp_path):
     check_task_improves(task, *TASKS[task], tmp_path)

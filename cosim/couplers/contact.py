@@ -16,24 +16,26 @@ import taichi as ti
 
 STANDARD_GRAVITY = 9.80665  # [m/s^2] the unit of the particle model's stiffness
 BLEND_WHERE = ("liquids", "all", "none")  # forecast: which particles get the paper's blended BC_p
-SOFT = 0.05  # [cells] the width over which every contact switch is rounded (``soft_ramp``)
+SPECULATIVE_SOFT = 2.0  # the speculative limit is rounded over this fraction of the gap (``soft_ramp``)
+STICK_SOFT = 0.1  # Coulomb's stick limit is rounded over this fraction of the tangential velocity
+PROJECT_SOFT = 1e-2  # [cells] advect-and-project's push is rounded over this much
 AUTO_OFFSET = -1.0  # a contact offset below 0: each particle's radius (``surface_offset``)
 TAPER = 0.25  # forecast: the fraction of the threshold over which BC_p's weight falls to 0
 
 
 @ti.func
-def soft_ramp(z, width):
-    """max(z, 0) made C1 from above: 0 below -width / 2, (z + width / 2)^2 / (2 width) up to width / 2,
-    z beyond; never below max(z, 0), so a rounded push or approach limit never lets a particle past
-    the surface (one rounded from below let 4 of make_taco's particles through the tortilla). Every
-    contact switch goes through it, so no loss has a kink there: with a bare max, particles reaching
-    the surface one after another put kinks so densely along any direction that central differences
-    at gradcheck's step were off by 1.6e-5 (pour_franka, 10 steps). The width trades that against
-    curvature: resting contact sits in the rounded part, and central differences on pull_door
-    (30 steps) were off by 6e-2, 6e-4, 6e-6 and 1e-6 at widths of 1e-6, 1e-4, 1e-2 and 0.05 cells;
-    a particle resting on a surface then sits up to width / 8 off it."""
-    inner = ti.min(ti.max(z + 0.5 * width, 0.0), width)
-    return inner * inner / (2.0 * width) + ti.max(z - 0.5 * width, 0.0)
+def frictional_bc(v, n, vc, friction):
+    """Velocity v after contact with a surface of outward normal n moving with vc: if approaching,
+    the relative velocity loses its normal part and its tangential part shrinks by Coulomb
+    friction, vc + v_t max(0, 1 - mu |v_n| / |v_t|); separating velocities are kept."""
+    rel = v - vc
+    vn = rel.dot(n)
+    out = v
+    if vn < 0:
+        vt = rel - vn * n
+        vt_norm = ti.sqrt(vt.norm_sqr() + 1e-20)
+        out = vc + ti.max(0.0, 1.0 + friction * vn / vt_norm) * vt
+    return out
 
 
 @ti.func
@@ -60,21 +62,30 @@ def source_offset(source, offset: float) -> float:
 
 
 @ti.func
-def speculative_bc(v, n, vc, friction, gap, dt, soft):
+def soft_ramp(z, width):
+    """max(z, 0) made C1 over ``width`` without ever exceeding it (no push or limit adds energy):
+    z^2 (2 width - z) / width^2 on (0, width), exact outside; width 0: max(z, 0)."""
+    inner = ti.min(ti.max(z, 0.0), width)
+    return inner * inner * (2.0 * width - inner) / ti.max(width * width, 1e-30) + ti.max(z - width, 0.0)
+
+
+@ti.func
+def speculative_bc(v, n, vc, friction, gap, dt):
     """Velocity v after a look-ahead contact with a surface ``gap`` [m] away (outward normal n, moving
     with vc): the relative normal velocity may approach at most at -gap/dt, so the particle reaches
-    the surface at the end of the substep and no sooner (gap < 0: it leaves the surface at -gap/dt;
-    gap = 0: the classic rule, the approaching normal part removed); the tangential part loses
-    Coulomb friction mu times the normal velocity taken away. Continuous in v, gap and the surface's
-    motion, and C1 but for friction's stick limit (``soft_ramp`` over ``soft`` [m] of gap); nothing
-    changes for a particle that would not reach the surface within dt, so an approaching body is not
-    braked before it touches (no dashpot, see ForecastContact)."""
+    the surface at the end of the substep and no sooner (gap < 0: it leaves the surface at -gap/dt);
+    the tangential part loses Coulomb friction mu times the normal velocity taken away. Continuous in
+    v, gap and the surface's motion; nothing changes for a particle that would not reach the surface
+    within dt, so an approaching body is not braked before it touches (no dashpot, see ForecastContact)."""
     rel = v - vc
     vn = rel.dot(n)
     vt = rel - vn * n
-    raised = soft_ramp(-gap / dt - vn, soft / dt)  # the normal velocity taken away
+    # rounded over a width proportional to the gap: a particle's first touch is C1, resting contact
+    # (gap 0) keeps the exact limit
+    raised = soft_ramp(-gap / dt - vn, SPECULATIVE_SOFT * ti.max(gap, 0.0) / dt)
     vt_norm = ti.sqrt(vt.norm_sqr() + 1e-20)
-    return vc + (vn + raised) * n + ti.max(0.0, 1.0 - friction * raised / vt_norm) * vt
+    slip = soft_ramp(1.0 - friction * raised / vt_norm, STICK_SOFT)  # Coulomb's stick limit, rounded
+    return vc + (vn + raised) * n + slip * vt
 
 
 @ti.data_oriented
@@ -112,8 +123,7 @@ class GridContact:
                         # a node a cell beyond the band keeps its velocity unless material crosses a cell per substep
                         if gap < e.dx:
                             vc = src.contact_velocity(s, b, xi, -1)
-                            soft = SOFT * e.dx
-                            v_new = speculative_bc(v, n, vc, self.friction, soft_ramp(gap, soft), dt, soft)
+                            v_new = speculative_bc(v, n, vc, self.friction, ti.max(gap, 0.0), dt)
                             src.add_reaction(s, b, xi, m * (v_new - v), -1)  # momentum given to the material
                             v = v_new
             self.output[g, I] = v
@@ -172,7 +182,7 @@ class ParticlePenalty:
                     d, n = source.distance_normal(s, b, x, p)
                     gap = d - surface_offset(e, ti.static(source_offset(source, self.offset)), p)
                     if gap < 0:
-                        jn = self.accel_per_depth * m * soft_ramp(-gap, SOFT * e.dx) * dt  # normal impulse, along +n
+                        jn = -self.accel_per_depth * m * gap * dt  # normal impulse, along +n
                         rel = v - source.contact_velocity(s, b, x, p)
                         vt = rel - rel.dot(n) * n
                         vt_norm = ti.sqrt(vt.norm_sqr() + 1e-20)
@@ -298,15 +308,14 @@ class ForecastContact:
                         blended = 1
                     elif ti.static(self.blend_where == "liquids"):
                         blended = self.engine.is_liquid(p)
-                    soft = SOFT * self.engine.dx
                     if blended:
                         smooth = self.blend(d - offset)
-                        v_out = smooth * speculative_bc(v, n, vc, self.friction, 0.0, dt, soft) + (1.0 - smooth) * v
+                        v_out = smooth * frictional_bc(v, n, vc, self.friction) + (1.0 - smooth) * v
                     else:
-                        v_out = speculative_bc(v, n, vc, self.friction, d - offset, dt, soft)
+                        v_out = speculative_bc(v, n, vc, self.friction, d - offset, dt)
                     d_new, n_new = source.distance_normal(s, b, x + dt * v_out, p)
                     if d_new < offset:
-                        v_out += (soft_ramp(offset - d_new, soft) / dt) * n_new
+                        v_out += (soft_ramp(offset - d_new, PROJECT_SOFT * self.engine.dx) / dt) * n_new
                     source.add_reaction(s, b, x, (-self.alpha * m_p) * (v - v_out), p)
                     v = v_out
         return v
