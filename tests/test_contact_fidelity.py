@@ -75,11 +75,12 @@ def _check_restitution(dim: int, cells: int, speed: float, model: str) -> None:
     assert reference > 0.8, reference  # the reference itself bounces (measured 0.90-0.94)
 
 
-# the default run keeps the forecast model's cases (the one the blend had made plastic), the rest -m fidelity
+# the default run (CI's 10 minutes) keeps the forecast model's scan and the union SDF; the rest -m fidelity
 FORECAST_FIRST = [pytest.param(m, marks=[] if m == "forecast" else [pytest.mark.fidelity]) for m in MODELS]
 
 
-@pytest.mark.parametrize("model", FORECAST_FIRST)
+@pytest.mark.fidelity
+@pytest.mark.parametrize("model", MODELS)
 def test_an_elastic_disc_rebounds_from_a_rigid_wall_as_from_the_domain_wall(model):
     _check_restitution(2, 64, 1.0, model)
 
@@ -127,7 +128,7 @@ def largest_jump(values: np.ndarray) -> float:
     return float(np.max(middle / scale))
 
 
-@pytest.mark.parametrize("model", MODELS)
+@pytest.mark.parametrize("model", FORECAST_FIRST)
 def test_a_loss_through_contact_has_no_jump_across_the_band(model):
     _thetas, values = scan_loss(model)
     step = np.median(np.abs(np.diff(values)))
@@ -210,7 +211,8 @@ def tub_run(model: str, seconds: float) -> tuple[int, float]:
     return int(lost.sum()), -float(np.mean(forces[-last:])) / weight
 
 
-@pytest.mark.parametrize("model", FORECAST_FIRST)
+@pytest.mark.fidelity
+@pytest.mark.parametrize("model", MODELS)
 def test_water_at_rest_stays_in_a_tub_of_welded_links(model):
     lost, load = tub_run(model, 0.5)
     assert lost == 0
