@@ -119,30 +119,23 @@ def test_ctrl_c_keeps_the_finished_cases(tmp_path):
 
     out = tmp_path / "i"
     cmd = [sys.executable, "-m", "cosim.cli", "sweep", "dam_break_2d", "--steps", "100", "--workers", "1"]
-    # eight cases: once the first is written the others must still be running when SIGINT lands (with
-    # four, a worker that had compiled its kernels finished the other three first under CI's load)
-    cmd += ["--grid", "mpm.bodies[0].material.E=1e5,1.5e5,2e5,3e5,4e5,5e5,6e5,8e5", "--out", str(out), "--quiet"]
-    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    cmd += ["--grid", "mpm.bodies[0].material.E=1e5,2e5,4e5,8e5", "--out", str(out), "--quiet"]
+    # xdist's workers ignore SIGINT and a child inherits that (Python then installs no KeyboardInterrupt
+    # handler: under CI's two workers the sweep ran on to exit 0); give the child the default back
+    inherited = signal.signal(signal.SIGINT, signal.SIG_DFL)
+    try:
+        proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    finally:
+        signal.signal(signal.SIGINT, inherited)
     deadline = time.monotonic() + 300
     while not (out / "sweep.csv").is_file() and time.monotonic() < deadline and proc.poll() is None:
         time.sleep(0.2)
-    # a Ctrl-C that lands inside Ray's own wait can be taken by Ray (seen under CI's load: the sweep
-    # then ran on to exit 0); like a user, press it again while cases keep finishing (not while the
-    # sweep is shutting down: a second Ctrl-C then kills it)
     proc.send_signal(signal.SIGINT)
-    seen = len(_rows(out / "sweep.csv"))
-    stop = time.monotonic() + 120
-    while proc.poll() is None and time.monotonic() < stop:
-        time.sleep(0.5)
-        now = len(_rows(out / "sweep.csv"))
-        if now > seen and proc.poll() is None:
-            seen = now
-            proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=120)
     rows = _rows(out / "sweep.csv")
     assert proc.returncode == 130, err
-    assert 1 <= len(rows) < 8 and all(r["status"] == "ok" for r in rows)
-    assert f"{len(rows)} of 8 cases had finished" in err
+    assert 1 <= len(rows) < 4 and all(r["status"] == "ok" for r in rows)
+    assert f"{len(rows)} of 4 cases had finished" in err
 
 
 def test_grid_cases_combine_and_sample_reproducibly():
