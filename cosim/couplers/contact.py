@@ -14,78 +14,19 @@ about the body origin.
 
 import taichi as ti
 
-STANDARD_GRAVITY = 9.80665  # [m/s^2] the unit of the particle model's stiffness
-BLEND_WHERE = ("liquids", "all", "none")  # forecast: which particles get the paper's blended BC_p
-SPECULATIVE_SOFT = 2.0  # the speculative limit is rounded over this fraction of the gap (``soft_ramp``)
-STICK_SOFT = 0.1  # Coulomb's stick limit is rounded over this fraction of the tangential velocity
-PROJECT_SOFT = 1e-2  # [cells] advect-and-project's push is rounded over this much
-AUTO_OFFSET = -1.0  # a contact offset below 0: each particle's radius (``surface_offset``)
-TAPER = 0.25  # forecast: the fraction of the threshold over which BC_p's weight falls to 0
-
-
-@ti.func
-def frictional_bc(v, n, vc, friction):
-    """Velocity v after contact with a surface of outward normal n moving with vc: if approaching,
-    the relative velocity loses its normal part and its tangential part shrinks by Coulomb
-    friction, vc + v_t max(0, 1 - mu |v_n| / |v_t|); separating velocities are kept."""
-    rel = v - vc
-    vn = rel.dot(n)
-    out = v
-    if vn < 0:
-        vt = rel - vn * n
-        vt_norm = ti.sqrt(vt.norm_sqr() + 1e-20)
-        out = vc + ti.max(0.0, 1.0 + friction * vn / vt_norm) * vt
-    return out
-
-
-@ti.func
-def surface_offset(engine: ti.template(), offset: ti.template(), p):
-    """[m] How far from a surface particle p's centre is held: ``offset`` if >= 0, else (AUTO_OFFSET)
-    the particle's radius, so that its material, not its centre, meets the geometry. (An expression,
-    not a branch: Taichi's adjoint of a local variable assigned in a static branch came out wrong.)"""
-    return ti.static(float(offset < 0)) * engine.radius_of(p) + ti.static(max(offset, 0.0))
-
-
-def default_alpha(dim: int, sources: list) -> float:
-    """The forecast model's gradient step: 0.8 in 2D; in 3D 0.3 (0.8 spread each particle's correction
-    over its 27 nodes' neighbours and cost an elastic sphere a tenth of its restitution), but 0.8 with a
-    cloth sheet (at 0.3, 46 of make_taco's filling particles crossed the tortilla)."""
-    if dim == 2 or any(getattr(src, "sheet", False) for src in sources):
-        return 0.8
-    return 0.3
-
-
-def source_offset(source, offset: float) -> float:
-    """The offset [m] (AUTO_OFFSET: the particle's radius) a contact model keeps from ``source``: 0 from
-    a cloth sheet (``sheet``), whose contact keeps the paper's form."""
-    return 0.0 if getattr(source, "sheet", False) else offset
-
-
-@ti.func
-def soft_ramp(z, width):
-    """max(z, 0) made C1 over ``width`` without ever exceeding it (no push or limit adds energy):
-    z^2 (2 width - z) / width^2 on (0, width), exact outside; width 0: max(z, 0)."""
-    inner = ti.min(ti.max(z, 0.0), width)
-    return inner * inner * (2.0 * width - inner) / ti.max(width * width, 1e-30) + ti.max(z - width, 0.0)
-
-
-@ti.func
-def speculative_bc(v, n, vc, friction, gap, dt):
-    """Velocity v after a look-ahead contact with a surface ``gap`` [m] away (outward normal n, moving
-    with vc): the relative normal velocity may approach at most at -gap/dt, so the particle reaches
-    the surface at the end of the substep and no sooner (gap < 0: it leaves the surface at -gap/dt);
-    the tangential part loses Coulomb friction mu times the normal velocity taken away. Continuous in
-    v, gap and the surface's motion; nothing changes for a particle that would not reach the surface
-    within dt, so an approaching body is not braked before it touches (no dashpot, see ForecastContact)."""
-    rel = v - vc
-    vn = rel.dot(n)
-    vt = rel - vn * n
-    # rounded over a width proportional to the gap: a particle's first touch is C1, resting contact
-    # (gap 0) keeps the exact limit
-    raised = soft_ramp(-gap / dt - vn, SPECULATIVE_SOFT * ti.max(gap, 0.0) / dt)
-    vt_norm = ti.sqrt(vt.norm_sqr() + 1e-20)
-    slip = soft_ramp(1.0 - friction * raised / vt_norm, STICK_SOFT)  # Coulomb's stick limit, rounded
-    return vc + (vn + raised) * n + slip * vt
+from cosim.couplers.contact_rules import (
+    AUTO_OFFSET,
+    BLEND_WHERE,
+    PROJECT_SOFT,
+    STANDARD_GRAVITY,
+    TAPER,
+    default_alpha,
+    frictional_bc,
+    soft_ramp,
+    source_offset,
+    speculative_bc,
+    surface_offset,
+)
 
 
 @ti.data_oriented
