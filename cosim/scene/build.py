@@ -15,21 +15,22 @@ import numpy as np
 
 from cosim.engines import so3
 from cosim.errors import SceneError
-from cosim.scene.preflight import control_indices, hydrostatic_compression, preflight
+from cosim.scene.preflight import body_velocity, control_indices, hydrostatic_compression, preflight
 from cosim.scene.schema import Scene
-from cosim.scene.velocity_field import velocity_field
 from cosim.system import Control, CoupledSystem, Stepping
 
 
-def build_bodies(scene: Scene, positions: list[np.ndarray]):
+def build_bodies(scene: Scene, positions: list[np.ndarray]) -> tuple[list, np.ndarray]:
     """Every body of the scene as an ``mpm.ParticleBody``: its particles ``positions`` [m] (from
-    ``body_positions``), with its material."""
+    ``body_positions``), with its material and initial velocities; and every particle's initial
+    APIC affine velocity C (N, dim, dim) [1/s], the bodies in order (``preflight.body_velocity``)."""
     from cosim.engines.mpm import ParticleBody
 
-    bodies = []
-    for spec, pts in zip(scene.mpm.bodies, positions):
+    bodies, affine = [], []
+    for i, (spec, pts) in enumerate(zip(scene.mpm.bodies, positions)):
         spacing = spec.spacing or 0.5 * scene.dx
-        vel = velocity_field(spec.velocity, pts)
+        vel, C = body_velocity(scene, i, pts)
+        affine.append(C)
         m = spec.material
         deformation = hydrostatic_deformation(pts, spacing, m, scene.gravity) if spec.hydrostatic else None
         bodies.append(
@@ -47,7 +48,7 @@ def build_bodies(scene: Scene, positions: list[np.ndarray]):
                 deformation=deformation,
             )
         )
-    return bodies
+    return bodies, np.concatenate(affine)
 
 
 def hydrostatic_deformation(pts: np.ndarray, spacing: float, material, gravity) -> np.ndarray:
@@ -107,7 +108,7 @@ def build_system(scene: Scene, requires_grad: bool = False, steps: int | None = 
     from cosim.engines.mpm import MPMConfig, MPMEngine
 
     steps = steps or scene.steps
-    bodies = build_bodies(scene, preflight(scene))
+    bodies, affine = build_bodies(scene, preflight(scene))
     stepping = build_stepping(scene, bodies, requires_grad, steps)
     cfg = MPMConfig(
         dim=scene.dim,
@@ -121,6 +122,7 @@ def build_system(scene: Scene, requires_grad: bool = False, steps: int | None = 
         has_controls=bool(scene.controls),
     )
     mpm = MPMEngine(cfg, bodies)
+    mpm.set_state({**mpm.state(), "C": affine})  # a ParticleBody carries x, v and F; C enters by the contract
     controls = build_controls(scene, mpm.body_slices(), mpm.state()["x"])
     parts = build_manipulators(scene, mpm, stepping)
     rigid = None

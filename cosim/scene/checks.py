@@ -13,9 +13,10 @@ import math
 from cosim.engines.shapes import RIGID_SHAPE_KINDS, required_keys
 from cosim.engines.urdf_tree import UrdfTree, read_urdf_tree
 from cosim.errors import SceneError
-from cosim.scene.schema import BoxShape, CylinderShape, MeshShape, Scene
+from cosim.scene.schema import BoxShape, CylinderShape, MeshShape, Scene, VelocityFile
 from cosim.scene.shipped import resolve_asset
 from cosim.scene.velocity_field import expression_problem
+from cosim.scene.velocity_file import file_problems
 
 
 def semantic_problems(scene: Scene) -> list[str]:
@@ -47,10 +48,13 @@ def semantic_problems(scene: Scene) -> list[str]:
             path = (scene.source_dir / shape.file).resolve()
             if not path.is_file():
                 problems.append(f"{base}.shape.file: file not found: {path}")
-        vec(f"{base}.velocity", body.velocity)
-        for k, component in enumerate(body.velocity or []):
-            if isinstance(component, str) and (problem := expression_problem(component, d)):
-                problems.append(f"{base}.velocity[{k}]: {problem}")
+        if isinstance(body.velocity, VelocityFile):
+            problems += file_problems(body.velocity.path(scene.source_dir), f"{base}.velocity.file")
+        else:
+            vec(f"{base}.velocity", body.velocity)
+            for k, component in enumerate(body.velocity or []):
+                if isinstance(component, str) and (problem := expression_problem(component, d)):
+                    problems.append(f"{base}.velocity[{k}]: {problem}")
         if body.hydrostatic and body.material.type != "liquid":
             problems.append(f"{base}.hydrostatic: only liquids can start hydrostatic; remove the key")
         if body.spacing is not None and body.spacing > scene.dx:

@@ -24,6 +24,15 @@ from cosim.scene.schema import (
 )
 
 _TAGS = {"elastic", "plastic", "liquid", *PARTICLE_SHAPE_KINDS}  # union tags pydantic puts in key paths
+_VELOCITY_TAGS = {"components", "file"}  # a body's velocity: a list of components or {file: PATH}
+
+
+def _is_tag(loc: tuple, i: int) -> bool:
+    """``loc[i]`` is a discriminator's branch name, not a key of the YAML file."""
+    previous = loc[i - 1] if i > 0 else None
+    return (loc[i] in _TAGS and previous in ("material", "shape")) or (
+        loc[i] in _VELOCITY_TAGS and previous == "velocity"
+    )
 
 
 def _path(loc: tuple) -> str:
@@ -31,7 +40,7 @@ def _path(loc: tuple) -> str:
     for i, part in enumerate(loc):
         if isinstance(part, int):
             out += f"[{part}]"
-        elif part in _TAGS and i > 0 and loc[i - 1] in ("material", "shape"):
+        elif _is_tag(loc, i):
             continue  # the discriminator's branch name is noise for the user
         elif isinstance(part, str) and part.startswith("function-"):
             continue
@@ -43,8 +52,8 @@ def _path(loc: tuple) -> str:
 def _allowed_keys(loc: tuple) -> list[str]:
     """Keys allowed in the mapping that holds ``loc[-1]`` (for unknown-key errors)."""
     model: Any = Scene
-    for part in loc[:-1]:
-        if isinstance(part, int):
+    for i, part in enumerate(loc[:-1]):
+        if isinstance(part, int) or (part in _VELOCITY_TAGS and _is_tag(loc, i)):
             continue
         if part in _TAGS:
             model = next(m for m in _UNION_MEMBERS if m.model_fields["type"].annotation.__args__[0] == part)
@@ -106,8 +115,12 @@ def _message(err: dict) -> str:
         return f"must be a number (got {err.get('input')!r})"
     if kind in ("int_parsing", "int_type", "int_from_float"):
         return f"must be an integer (got {err.get('input')!r})"
+    if kind == "list_type" and loc[-2:] == ("velocity", "components"):
+        return f"must be a list of numbers or expressions, one per axis, or {{file: PATH}} (got {err.get('input')!r})"
     if kind in ("list_type",):
         return f"must be a list (got {err.get('input')!r})"
+    if kind == "string_type":
+        return f"must be a string (got {err.get('input')!r})"
     if kind in ("model_type", "model_attributes_type", "dict_type"):
         return f"must be a mapping of keys (got {err.get('input')!r})"
     if kind == "too_short":

@@ -2,9 +2,10 @@
 
 ``cosim validate`` runs it, and ``build_system`` runs the same function before building anything,
 so whatever `run` refuses at the start, `validate` refuses with the same message: the grid fits in
-memory, every body samples into the grid, control regions select particles, a fixed substep count
-is below the explicit stability bound and an automatic one within ``time.max_substeps``, a liquid
-started hydrostatic is stiff enough to carry its own weight, and a loss's target points can be read.
+memory, every body samples into the grid, its initial velocity (expressions or a file) is finite
+and fits its particles, control regions select particles, a fixed substep count is below the
+explicit stability bound and an automatic one within ``time.max_substeps``, a liquid started
+hydrostatic is stiff enough to carry its own weight, and a loss's target points can be read.
 """
 
 from __future__ import annotations
@@ -17,8 +18,9 @@ import numpy as np
 from cosim.engines.moduli import lame_parameters, viscous_time_step, wave_speed
 from cosim.errors import SceneError
 from cosim.scene.particles import body_positions
-from cosim.scene.schema import Scene
-from cosim.scene.velocity_field import velocity_field
+from cosim.scene.schema import Scene, VelocityFile
+from cosim.scene.velocity_field import GRADIENT_STEP, velocity_field, velocity_gradient
+from cosim.scene.velocity_file import file_velocity
 
 # Share of the machine's memory the forward run's grid may take (the particles, tape and
 # the rest of the process need the remainder).
@@ -86,12 +88,7 @@ def check_substeps(scene: Scene, bodies: list[np.ndarray]) -> None:
     for i, spec in enumerate(scene.mpm.bodies):
         m = spec.material
         c = wave_speed(m.E, m.nu, m.density, scene.dim)
-        velocities = velocity_field(spec.velocity, bodies[i])
-        if not np.isfinite(velocities).all():
-            raise SceneError(
-                f"mpm.bodies[{i}].velocity: not finite at {int((~np.isfinite(velocities)).any(axis=1).sum())} "
-                f"particles of body '{spec.name}'; keep the expressions finite over the body"
-            )
+        velocities, _ = body_velocity(scene, i, bodies[i])
         v = float(np.linalg.norm(velocities, axis=1).max()) if len(velocities) else 0.0
         viscous = viscous_time_step(m.density, getattr(m, "viscosity", 0.0), dx, scene.dim)
         need = max(frame_dt * (c + v + fall) / (time.cfl * dx), frame_dt / viscous)
@@ -124,6 +121,30 @@ def check_substeps(scene: Scene, bodies: list[np.ndarray]) -> None:
             f"more than time.max_substeps = {time.max_substeps}; {what}, shorten time.frame_dt or raise "
             "time.max_substeps"
         )
+
+
+def body_velocity(scene: Scene, i: int, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Initial velocities v (n, dim) [m/s] and APIC affine velocities C = grad v (n, dim, dim) [1/s]
+    of body i's particles at ``pts`` [m]: from its expressions (C by differences with a step of
+    ``GRADIENT_STEP`` times the domain's size) or its file (``cosim.scene.velocity_file``).
+    Refused where an expression or its gradient is not finite."""
+    spec, key = scene.mpm.bodies[i], f"mpm.bodies[{i}].velocity"
+    if isinstance(spec.velocity, VelocityFile):
+        return file_velocity(spec.velocity.path(scene.source_dir), pts, key, spec.name)
+    v = _finite(velocity_field(spec.velocity, pts), "not finite", key, spec.name)
+    step = GRADIENT_STEP * max(scene.cells) * scene.dx
+    C = velocity_gradient(spec.velocity, pts, step)
+    return v, _finite(C, "its gradient (the particles' initial APIC C) is not finite", key, spec.name)
+
+
+def _finite(values: np.ndarray, what: str, key: str, body: str) -> np.ndarray:
+    """``values`` (one row or matrix per particle), refused naming ``key`` if any is not finite."""
+    bad = int((~np.isfinite(values.reshape(len(values), -1))).any(axis=1).sum())
+    if bad:
+        raise SceneError(
+            f"{key}: {what} at {bad} particles of body '{body}'; keep the expressions finite over the body"
+        )
+    return values
 
 
 def hydrostatic_compression(pts: np.ndarray, spacing: float, material, gravity) -> np.ndarray:

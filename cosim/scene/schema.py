@@ -11,7 +11,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from pydantic import BeforeValidator, Field, PlainValidator
+from pydantic import BeforeValidator, Discriminator, Field, PlainValidator, Tag
 
 from cosim.engines.shapes import RIGID_SHAPE_KINDS
 from cosim.scene.schema_base import (  # noqa: F401  (re-exported: the scene's vocabulary)
@@ -88,12 +88,34 @@ class LiquidMaterial(_MaterialBase):
 Material = Annotated[ElasticMaterial | PlasticMaterial | LiquidMaterial, Field(discriminator="type")]
 
 
+class VelocityFile(Strict):
+    """An initial velocity read from a file (cosim.scene.velocity_file): one row per particle, or a
+    point cloud of positions and velocities interpolated to the particles."""
+
+    file: str  # .npy, .npz or .csv, relative to the scene file
+
+    def path(self, source_dir: Path) -> Path:
+        """The file's absolute path, for a scene read from ``source_dir``."""
+        return (source_dir / self.file).resolve()
+
+
+def _velocity_form(value: Any) -> str:
+    return "file" if isinstance(value, (dict, VelocityFile)) else "components"
+
+
+# [m/s] per component a number or an expression in x, y, z (cosim.scene.velocity_field), or {file: PATH}
+Velocity = Annotated[
+    Annotated[list[Annotated[Any, PlainValidator(velocity_component)]], Tag("components")]
+    | Annotated[VelocityFile, Tag("file")],
+    Discriminator(_velocity_form),
+]
+
+
 class BodySpec(Strict):
     name: str
     material: Material
     shape: Shape
-    # [m/s], default at rest; per component a number or an expression in x, y, z (cosim.scene.velocity_field)
-    velocity: list[Annotated[Any, PlainValidator(velocity_component)]] | None = None
+    velocity: Velocity | None = None  # default at rest
     spacing: Positive | None = None  # [m] particle lattice spacing, default dx / 2
     jitter: Annotated[float, Field(ge=0, le=0.5)] = 0.0  # fraction of spacing
     hydrostatic: bool = False  # liquids: start compressed by their own weight (at rest)
