@@ -334,11 +334,11 @@ class ForecastContact:
     @ti.func
     def blend(self, d):
         """Weight of BC_p at signed distance d [m]: min(exp(-beta d), 1), tapered to 0 over the last
-        quarter of the threshold by a smoothstep, so a particle entering the band feels no jump (with
+        quarter of the threshold by a C2 smoothstep, so a particle entering the band feels no jump (with
         the bare exponential it jumped by e^-2 there and finite differences of any loss through contact
         did not converge; measured on towel_squash)."""
         t = ti.min(ti.max((self.threshold - d) / (TAPER * self.threshold), 0.0), 1.0)
-        return ti.min(ti.exp(-self.beta * d), 1.0) * t * t * (3.0 - 2.0 * t)
+        return ti.min(ti.exp(-self.beta * d), 1.0) * t * t * t * (10.0 - 15.0 * t + 6.0 * t * t)
 
     @ti.func
     def velocity(self, g, I):
