@@ -16,6 +16,7 @@ import taichi as ti
 
 from cosim.couplers.contact_rules import (
     AUTO_OFFSET,
+    BLEND_SOFT,
     BLEND_WHERE,
     PROJECT_SOFT,
     STANDARD_GRAVITY,
@@ -333,12 +334,15 @@ class ForecastContact:
 
     @ti.func
     def blend(self, d):
-        """Weight of BC_p at signed distance d [m]: min(exp(-beta d), 1), tapered to 0 over the last
+        """Weight of BC_p at signed distance d [m]: min(exp(-beta d), 1) (its corner at d = 0 rounded
+        over BLEND_SOFT cells, from the side of a stronger blend), tapered to 0 over the last
         quarter of the threshold by a C2 smoothstep, so a particle entering the band feels no jump (with
         the bare exponential it jumped by e^-2 there and finite differences of any loss through contact
         did not converge; measured on towel_squash)."""
         t = ti.min(ti.max((self.threshold - d) / (TAPER * self.threshold), 0.0), 1.0)
-        return ti.min(ti.exp(-self.beta * d), 1.0) * t * t * t * (10.0 - 15.0 * t + 6.0 * t * t)
+        return (
+            ti.exp(-self.beta * soft_ramp(d, BLEND_SOFT * self.engine.dx)) * t * t * t * (10.0 - 15.0 * t + 6.0 * t * t)
+        )
 
     @ti.func
     def velocity(self, g, I):

@@ -10,6 +10,9 @@ SPECULATIVE_SOFT = 2.0  # the speculative limit is rounded over this fraction of
 STICK_SOFT = 0.1  # Coulomb's stick limit is rounded over this fraction of the tangential velocity
 PROJECT_SOFT = 1e-2  # [cells] advect-and-project's push is rounded over this much
 AUTO_OFFSET = -1.0  # a contact offset below 0: each particle's radius (``surface_offset``)
+APPROACH_SOFT = 1e-4  # [m/s] the blended BC's removal of an approach is rounded over this speed (a tenth
+# of what gravity adds in a 1e-4 s substep)
+BLEND_SOFT = 1e-2  # [cells] the forecast blend's corner at the surface is rounded over this
 TAPER = 0.25  # forecast: the fraction of the threshold over which BC_p's weight falls to 0
 
 
@@ -17,15 +20,16 @@ TAPER = 0.25  # forecast: the fraction of the threshold over which BC_p's weight
 def frictional_bc(v, n, vc, friction):
     """Velocity v after contact with a surface of outward normal n moving with vc: if approaching,
     the relative velocity loses its normal part and its tangential part shrinks by Coulomb
-    friction, vc + v_t max(0, 1 - mu |v_n| / |v_t|); separating velocities are kept."""
+    friction, vc + v_t max(0, 1 - mu |v_n| / |v_t|); separating velocities are kept. Both max()
+    are rounded (``soft_ramp``): with the bare switches water crossing vn = 0 put kinks along any
+    direction, and pour_water's 30-step gradcheck was 4.6e-5 off; rounded, 3e-8."""
     rel = v - vc
     vn = rel.dot(n)
-    out = v
-    if vn < 0:
-        vt = rel - vn * n
-        vt_norm = ti.sqrt(vt.norm_sqr() + 1e-20)
-        out = vc + ti.max(0.0, 1.0 + friction * vn / vt_norm) * vt
-    return out
+    vt = rel - vn * n
+    removed = soft_ramp(-vn, APPROACH_SOFT)  # the approach taken away, C2 at vn = 0
+    vt_norm = ti.sqrt(vt.norm_sqr() + 1e-20)
+    slip = soft_ramp(1.0 - friction * removed / vt_norm, STICK_SOFT)  # Coulomb's stick limit, rounded
+    return vc + (vn + removed) * n + slip * vt
 
 
 @ti.func
