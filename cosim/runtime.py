@@ -14,11 +14,20 @@ environment variable ``COSIM_OPTIMIZE_KERNELS=1``.
 
 Threads: Taichi's CPU backend uses every core unless ``COSIM_CPU_THREADS`` caps it (set by
 the scale-out workers, ``cosim.scale``, so that W workers on C cores do not run W x C threads).
+Kernel cache: Taichi keeps compiled kernels in its offline cache (``~/.cache/taichi`` by
+default); ``COSIM_TAICHI_CACHE=DIR`` puts it elsewhere (a shared disk on a cluster, a scratch
+folder in CI). Both options are chosen by arch in ``init_options``; what the engines choose by
+arch is in ``cosim.engines.arch``.
+
+``arch: cuda`` on a machine without a CUDA GPU is an error (Taichi would fall back to the CPU
+with a warning, and a run meant for a GPU would crawl without saying why).
 """
 
 from __future__ import annotations
 
 import os
+
+from cosim.errors import InputError
 
 _current: tuple[str, str, bool] | None = None
 _optimize = os.environ.get("COSIM_OPTIMIZE_KERNELS", "") == "1"
@@ -48,8 +57,8 @@ def taichi_precision(precision: str):
 def ensure_taichi(arch: str = "cpu", precision: str = "float64") -> None:
     """Initialise Taichi for ``arch`` ('cpu' or 'cuda') and ``precision``.
 
-    A no-op when Taichi already runs with the same settings. 'cuda' falls back
-    to the CPU with a warning when no GPU is present (Taichi's own behaviour).
+    A no-op when Taichi already runs with the same settings. An ``InputError`` when the arch is a
+    GPU's and Taichi finds none (it would fall back to the CPU).
     """
     global _current
     key = (arch, precision, _optimize)
@@ -69,15 +78,36 @@ def ensure_taichi(arch: str = "cpu", precision: str = "float64") -> None:
         log_level=ti.WARN,
         random_seed=0,
         advanced_optimization=_optimize,
-        **_thread_cap(),
+        **init_options(arch),
     )
+    from cosim.engines.arch import CPU_ARCHES, running_arch
+
+    if arch not in CPU_ARCHES and running_arch() in CPU_ARCHES:
+        ti.reset()
+        _current = None
+        raise InputError(
+            f"arch: {arch}: Taichi found no usable {arch} GPU on this machine and would run on the CPU; "
+            "set arch: cpu (scene key, or --arch cpu), or run where an NVIDIA GPU and its driver are installed"
+        )
     _current = key
 
 
-def _thread_cap() -> dict:
-    """``cpu_max_num_threads`` from ``COSIM_CPU_THREADS`` when set (see the module docstring)."""
-    value = os.environ.get("COSIM_CPU_THREADS", "")
-    return {"cpu_max_num_threads": int(value)} if value else {}
+def init_options(arch: str) -> dict:
+    """The ``ti.init`` options that depend on the arch and the environment (see the module docstring):
+    ``cpu_max_num_threads`` from ``COSIM_CPU_THREADS`` on a CPU, ``offline_cache_file_path`` from
+    ``COSIM_TAICHI_CACHE``."""
+    from cosim.engines.arch import CPU_ARCHES
+
+    options = {}
+    threads = os.environ.get("COSIM_CPU_THREADS", "")
+    if threads and not threads.isdigit() or threads == "0":
+        raise InputError(f"COSIM_CPU_THREADS={threads!r}: give a whole number of threads, at least 1, or unset it")
+    if threads and arch in CPU_ARCHES:
+        options["cpu_max_num_threads"] = int(threads)
+    cache = os.environ.get("COSIM_TAICHI_CACHE", "")
+    if cache:
+        options["offline_cache_file_path"] = cache
+    return options
 
 
 def current() -> tuple[str, str] | None:

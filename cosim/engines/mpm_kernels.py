@@ -28,6 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 import taichi as ti
 
+from cosim.engines.arch import current_choices
 from cosim.engines.materials import MATERIALS
 
 
@@ -69,7 +70,7 @@ class MPMConfig:
     requires_grad: bool = False
     grad_substeps: int = 1  # gradient mode: substeps per macro step (slots = this + 1)
     has_controls: bool = False
-    serial_p2g: bool = True  # single-threaded non-atomic scatter (faster on CPUs)
+    serial_p2g: bool | None = None  # single-threaded non-atomic scatter; None: by the arch (cosim.engines.arch)
 
 
 STATE_KEYS = ("x", "v", "C", "F")
@@ -135,7 +136,7 @@ class MPMKernels:
         self.p_liquid.from_numpy(np.array([b.material == "liquid" for b in bodies], dtype=np.int32))
         self.mass = np.concatenate([np.full(b.n, b.particle_mass) for b in bodies])
         self.body_id.from_numpy(np.concatenate([np.full(b.n, i, dtype=np.int32) for i, b in enumerate(bodies)]))
-        self._serial = bool(config.serial_p2g)
+        self._serial = current_choices().serial_scatter if config.serial_p2g is None else bool(config.serial_p2g)
         self.grid_hooks: list = []  # contact models rewriting grid velocities, in order
         self.particle_hooks: list = []  # contact models adding momentum in P2G
         self.substep_preparers: list = []  # boundary sources' before_substep(src, s), run on the host
