@@ -10,7 +10,10 @@ import pytest
 from conftest import check_task_improves
 
 TASKS = {
-    "squeeze_plasticine": (10, 0.998),  # measured: 7.353e-4 -> 7.325e-4 (-0.38%; the fingers barely touch yet)
+    # the fingers close the 1 cm to the block at 5 cm/s and touch its material at step 50 (the contact
+    # offset keeps particle centres a radius off; within 10 steps the gradient was 0): measured
+    # 7.272e-4 -> 5.831e-4 -> 4.362e-4
+    "squeeze_plasticine": (60, 0.65),
     "pour_franka": (10, 0.999),  # measured: 0.21695 -> 0.21640 (-0.25%)
 }
 
