@@ -21,9 +21,9 @@ TAPER = 0.25  # forecast: the fraction of the threshold over which BC_p's weight
 def frictional_bc(v, n, vc, friction):
     """Velocity v after contact with a surface of outward normal n moving with vc: if approaching,
     the relative velocity loses its normal part and its tangential part shrinks by Coulomb
-    friction, vc + v_t max(0, 1 - mu |v_n| / |v_t|); separating velocities are kept. Both max()
-    are rounded (``soft_ramp``): with the bare switches water crossing vn = 0 put kinks along any
-    direction, and pour_water's 30-step gradcheck was 4.6e-5 off; rounded, 3e-8."""
+    friction, vc + v_t max(0, 1 - mu |v_n| / |v_t|); separating velocities are kept. Both switches
+    are rounded (``soft_ramp``, ``coulomb_slip``): with bare ones water crossing vn = 0 put kinks
+    along any direction, and pour_water's 30-step gradcheck was 4.6e-5 off; rounded, 3e-8."""
     rel = v - vc
     vn = rel.dot(n)
     vt = rel - vn * n
