@@ -115,7 +115,7 @@ def cmd_validate(args) -> int:
 
     scene = _load(args)
     bodies = preflight(scene)  # every check `run` makes before its first step
-    n = sum(len(b) for b in bodies)
+    n = sum(len(b.positions) for b in bodies)
     print(
         f"{args.scene}: valid ({scene.dim}D, {len(bodies)} bodies, {n} particles, "
         f"grid {scene.cells}, dx {scene.dx:g} m)"

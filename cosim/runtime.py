@@ -100,7 +100,7 @@ def init_options(arch: str) -> dict:
 
     options = {}
     threads = os.environ.get("COSIM_CPU_THREADS", "")
-    if threads and not threads.isdigit() or threads == "0":
+    if threads and (not threads.isdigit() or int(threads) == 0):
         raise InputError(f"COSIM_CPU_THREADS={threads!r}: give a whole number of threads, at least 1, or unset it")
     if threads and arch in CPU_ARCHES:
         options["cpu_max_num_threads"] = int(threads)

@@ -15,22 +15,21 @@ import numpy as np
 
 from cosim.engines import so3
 from cosim.errors import SceneError
-from cosim.scene.preflight import body_velocity, control_indices, hydrostatic_compression, preflight
+from cosim.scene.preflight import BodyStart, control_indices, hydrostatic_compression, preflight
 from cosim.scene.schema import Scene
 from cosim.system import Control, CoupledSystem, Stepping
 
 
-def build_bodies(scene: Scene, positions: list[np.ndarray]) -> tuple[list, np.ndarray]:
-    """Every body of the scene as an ``mpm.ParticleBody``: its particles ``positions`` [m] (from
-    ``body_positions``), with its material and initial velocities; and every particle's initial
-    APIC affine velocity C (N, dim, dim) [1/s], the bodies in order (``preflight.body_velocity``)."""
+def build_bodies(scene: Scene, starts: list[BodyStart]) -> tuple[list, np.ndarray]:
+    """Every body of the scene as an ``mpm.ParticleBody`` from its start (``preflight``): particles,
+    material and initial velocities; and every particle's initial APIC affine velocity C
+    (N, dim, dim) [1/s], the bodies in order."""
     from cosim.engines.mpm import ParticleBody
 
-    bodies, affine = [], []
-    for i, (spec, pts) in enumerate(zip(scene.mpm.bodies, positions)):
+    bodies = []
+    for spec, start in zip(scene.mpm.bodies, starts):
         spacing = spec.spacing or 0.5 * scene.dx
-        vel, C = body_velocity(scene, i, pts)
-        affine.append(C)
+        pts = start.positions
         m = spec.material
         deformation = hydrostatic_deformation(pts, spacing, m, scene.gravity) if spec.hydrostatic else None
         bodies.append(
@@ -42,13 +41,13 @@ def build_bodies(scene: Scene, positions: list[np.ndarray]) -> tuple[list, np.nd
                 density=m.density,
                 particle_volume=spacing**scene.dim,
                 positions=pts,
-                velocities=vel,
+                velocities=start.velocities,
                 yield_stress=getattr(m, "yield_stress", math.inf),
                 viscosity=getattr(m, "viscosity", 0.0),
                 deformation=deformation,
             )
         )
-    return bodies, np.concatenate(affine)
+    return bodies, np.concatenate([start.affine for start in starts])
 
 
 def hydrostatic_deformation(pts: np.ndarray, spacing: float, material, gravity) -> np.ndarray:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import os
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -27,13 +28,25 @@ from cosim.scene.velocity_file import file_velocity
 GRID_MEMORY_SHARE = 0.5
 
 
-def preflight(scene: Scene) -> list[np.ndarray]:
-    """Run the start-of-run checks; return every body's particle positions [m] (``body_positions``)."""
+@dataclass
+class BodyStart:
+    """A body's particles at the start: positions (n, dim) [m] (``body_positions``), velocities
+    (n, dim) [m/s] and APIC affine velocities C (n, dim, dim) [1/s] (``body_velocity``)."""
+
+    positions: np.ndarray
+    velocities: np.ndarray
+    affine: np.ndarray
+
+
+def preflight(scene: Scene) -> list[BodyStart]:
+    """Run the start-of-run checks; return every body's start, which ``build_system`` builds from (so a
+    velocity file is read, and a point cloud triangulated, once)."""
     check_grid_memory(scene)
-    bodies = body_positions(scene)
-    check_control_regions(scene, bodies)
-    check_substeps(scene, bodies)
-    check_hydrostatic(scene, bodies)
+    positions = body_positions(scene)
+    check_control_regions(scene, positions)
+    bodies = [BodyStart(pts, *body_velocity(scene, i, pts)) for i, pts in enumerate(positions)]
+    check_substeps(scene, [b.velocities for b in bodies])
+    check_hydrostatic(scene, positions)
     check_loss_targets(scene)
     if scene.cloth:  # each cloth's mesh (no degenerate or sliver faces) and selections
         from cosim.scene.cloth import cloth_selection  # only cloth scenes load the cloth modules
@@ -79,7 +92,7 @@ def check_control_regions(scene: Scene, bodies: list[np.ndarray]) -> None:
             )
 
 
-def check_substeps(scene: Scene, bodies: list[np.ndarray]) -> None:
+def check_substeps(scene: Scene, velocities: list[np.ndarray]) -> None:
     """A fixed count keeps dt below dx / c and the viscous bound rho dx^2 / (2 d eta); an automatic
     count for the first frame (initial speeds, one frame of gravity) stays within ``time.max_substeps``."""
     frame_dt, dx, time = scene.time.frame_dt, scene.dx, scene.time
@@ -88,8 +101,7 @@ def check_substeps(scene: Scene, bodies: list[np.ndarray]) -> None:
     for i, spec in enumerate(scene.mpm.bodies):
         m = spec.material
         c = wave_speed(m.E, m.nu, m.density, scene.dim)
-        velocities, _ = body_velocity(scene, i, bodies[i])
-        v = float(np.linalg.norm(velocities, axis=1).max()) if len(velocities) else 0.0
+        v = float(np.linalg.norm(velocities[i], axis=1).max()) if len(velocities[i]) else 0.0
         viscous = viscous_time_step(m.density, getattr(m, "viscosity", 0.0), dx, scene.dim)
         need = max(frame_dt * (c + v + fall) / (time.cfl * dx), frame_dt / viscous)
         dt = frame_dt / time.substeps if time.substeps else 0.0
