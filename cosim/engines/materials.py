@@ -50,6 +50,17 @@ def inverse_transpose_3(R):
 
 
 @ti.func
+def cofactor(F):
+    """det(F) F^-T (2D or 3D): the derivative of det(F) with respect to F."""
+    out = F
+    if ti.static(F.n == 2):
+        out = ti.Matrix([[F[1, 1], -F[1, 0]], [-F[0, 1], F[0, 0]]])
+    else:
+        out = F.determinant() * inverse_transpose_3(F)
+    return out
+
+
+@ti.func
 def polar_rotation(F):
     """Rotation R of the polar decomposition F = R S (S symmetric).
 
@@ -76,12 +87,48 @@ def polar_rotation(F):
 
 
 @ti.func
+def polar_rotation_vjp(F, R, R_bar):
+    """dL/dF through R = polar_rotation(F), given dL/dR: the derivative of the exact polar
+    decomposition (the Newton iterate equals it to round-off), one small solve instead of the
+    reverse of the iterations. With F = R S, dR = R [w]x where (tr(S) I - S) w = vee(R^T dF - dF^T R)
+    (in 2D, tr(S) w = (R^T dF - dF^T R)_10); hence dL/dF = R [c]x, (tr(S) I - S) c = vee(M - M^T),
+    M = R^T R_bar, vee(A) = (A_21, A_02, A_10)."""
+    S = R.transpose() @ F
+    S = 0.5 * (S + S.transpose())
+    M = R.transpose() @ R_bar
+    F_bar = R_bar
+    if ti.static(F.n == 2):
+        c = (M[1, 0] - M[0, 1]) / S.trace()
+        F_bar = R @ ti.Matrix([[0.0, -c], [c, 0.0]])
+    else:
+        m = ti.Vector([M[2, 1] - M[1, 2], M[0, 2] - M[2, 0], M[1, 0] - M[0, 1]])
+        K = S.trace() * ti.Matrix.identity(float, 3) - S  # symmetric: its inverse is its inverse transpose
+        c = inverse_transpose_3(K) @ m
+        F_bar = R @ ti.Matrix([[0.0, -c[2], c[1]], [c[2], 0.0, -c[0]], [-c[1], c[0], 0.0]])
+    return F_bar
+
+
+@ti.func
 def corotated_kirchhoff(F, mu, lam):
     """Fixed corotated stress: tau = 2 mu (F - R) F^T + lam (J - 1) J I."""
     R = polar_rotation(F)
     J = F.determinant()
     eye = ti.Matrix.identity(float, F.n)
     return 2.0 * mu * (F - R) @ F.transpose() + lam * (J - 1.0) * J * eye
+
+
+@ti.func
+def corotated_kirchhoff_vjp(F, mu, lam, tau_bar):
+    """(dL/dF, dL/dmu, dL/dlam) of tau = corotated_kirchhoff(F, mu, lam), given dL/dtau."""
+    R = polar_rotation(F)
+    J = F.determinant()
+    strain_part = F - R
+    F_bar = 2.0 * mu * (tau_bar @ F + tau_bar.transpose() @ strain_part)
+    F_bar += polar_rotation_vjp(F, R, -2.0 * mu * tau_bar @ F)
+    pressure_bar = tau_bar.trace()
+    F_bar += (pressure_bar * lam * (2.0 * J - 1.0)) * cofactor(F)
+    mu_bar = 2.0 * (tau_bar * (strain_part @ F.transpose())).sum()
+    return F_bar, mu_bar, pressure_bar * (J - 1.0) * J
 
 
 @ti.data_oriented
@@ -95,13 +142,19 @@ class Elastic:
         return corotated_kirchhoff(F, mu, lam)
 
     @ti.func
+    def kirchhoff_vjp(self, F, C, mu, lam, eta, tau_bar):
+        """(dL/dF, dL/dC, dL/dmu, dL/dlam) of ``kirchhoff``, given dL/dtau."""
+        F_bar, mu_bar, lam_bar = corotated_kirchhoff_vjp(F, mu, lam, tau_bar)
+        return F_bar, ti.Matrix.zero(float, F.n, F.n), mu_bar, lam_bar
+
+    @ti.func
     def project(self, F, mu, lam, yield_stress):
         return F
 
 
 @ti.data_oriented
-class Plastic:
-    """Elasto-plastic: corotated elasticity with a von Mises radial return.
+class Plastic(Elastic):
+    """Elasto-plastic: corotated elasticity (``Elastic``'s stress) with a von Mises radial return.
 
     The strain measure is the corotated (Biot) strain e = S - I with F = R S.
     Its deviatoric part is scaled back onto the yield surface
@@ -111,10 +164,6 @@ class Plastic:
     """
 
     name = "plastic"
-
-    @ti.func
-    def kirchhoff(self, F, C, mu, lam, eta):
-        return corotated_kirchhoff(F, mu, lam)
 
     @ti.func
     def project(self, F, mu, lam, yield_stress):
@@ -149,6 +198,16 @@ class Liquid:
         J = F.determinant()
         bulk = lam + 2.0 * mu / F.n
         return bulk * J * (J - 1.0) * ti.Matrix.identity(float, F.n) + J * eta * (C + C.transpose())
+
+    @ti.func
+    def kirchhoff_vjp(self, F, C, mu, lam, eta, tau_bar):
+        """(dL/dF, dL/dC, dL/dmu, dL/dlam) of ``kirchhoff``, given dL/dtau."""
+        J = F.determinant()
+        bulk = lam + 2.0 * mu / F.n
+        pressure_bar = tau_bar.trace()
+        J_bar = pressure_bar * bulk * (2.0 * J - 1.0) + eta * (tau_bar * (C + C.transpose())).sum()
+        bulk_bar = pressure_bar * J * (J - 1.0)
+        return J_bar * cofactor(F), J * eta * (tau_bar + tau_bar.transpose()), 2.0 * bulk_bar / F.n, bulk_bar
 
     @ti.func
     def project(self, F, mu, lam, yield_stress):

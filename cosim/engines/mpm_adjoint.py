@@ -4,8 +4,10 @@ Taichi's reverse-mode autodiff of the transfer kernels unrolls the 3^d stencil
 into a large reverse program: in 3D the reverse P2G and G2P alone compiled for
 about 50 s (measured). The adjoints here are written out instead and loop over
 the stencil at run time, so each compiles in under half a second and runs as
-fast as an unrolled one (measured; docs/benchmarks.md). The per-particle stress,
-the grid update and the return mapping keep Taichi's autodiff (no stencil there).
+fast as an unrolled one (measured; docs/benchmarks.md). The per-particle stress's
+adjoint is written out too (``_stress_adjoint``: the 3D polar decomposition's
+derivative is one 3x3 solve, where Taichi's reverse mode replayed its Newton
+iterations); the grid update and the return mapping keep Taichi's autodiff.
 
 Notation for one particle at x with stencil nodes i: weights w_i(x) (products of
 per-axis quadratic B-splines), offsets dpos_i = (i - x / dx) dx. Both depend on x:
@@ -115,6 +117,28 @@ class MPMAdjointKernels(MPMKernels):
             source.velocity_grad(g, I, self.gathered_grad[I])
             self.gathered_grad[I] = ti.Vector.zero(float, self.dim)
 
+    @ti.kernel
+    def _stress_adjoint(
+        self, mat: ti.template(), b: ti.i32, start: ti.i32, end: ti.i32, src: ti.i32, g: ti.i32, dt: float
+    ):
+        """Adjoint of ``_stress`` (affine = s tau(F, C, mu, lam) + m_p C, s = -dt V0 4 / dx^2): from
+        dL/d(affine) to dL/dF, dL/dC and the body's dL/dE, dL/dnu (through the Lame parameters)."""
+        for p in range(start, end):
+            E, nu = self.E[b], self.nu[b]
+            mu, lam = self._lame(b)
+            m_p, vol = self.p_mass[b], self.p_vol[b]
+            affine_bar = self.affine.grad[g, p]
+            tau_bar = (-dt * vol * 4.0 * self.inv_dx * self.inv_dx) * affine_bar
+            F_bar, C_bar, mu_bar, lam_bar = mat.kirchhoff_vjp(
+                self.F[src, p], self.C[src, p], mu, lam, self.viscosity[b], tau_bar
+            )
+            self.F.grad[src, p] += F_bar
+            self.C.grad[src, p] += C_bar + m_p * affine_bar
+            # mu = E / (2 (1 + nu)), lam = E nu / ((1 + nu)(1 - 2 nu))
+            q = (1.0 + nu) * (1.0 - 2.0 * nu)
+            self.E.grad[b] += mu_bar / (2.0 * (1.0 + nu)) + lam_bar * nu / q
+            self.nu.grad[b] += -mu_bar * E / (2.0 * (1.0 + nu) ** 2) + lam_bar * E * (1.0 + 2.0 * nu * nu) / (q * q)
+
     def _substep_grad(self, s: int, dt: float, control_share: float) -> None:
         """Adjoint of substep s (slots s -> s + 1); its grid and stress copies are still held."""
         for b in reversed(range(len(self.bodies))):
@@ -128,7 +152,7 @@ class MPMAdjointKernels(MPMKernels):
         for b in reversed(range(len(self.bodies))):
             lo, hi = self.ranges[b]
             self._p2g_adjoint(b, lo, hi, s, s, control_share)
-            self._stress.grad(self.materials[b], b, lo, hi, s, s, dt)
+            self._stress_adjoint(self.materials[b], b, lo, hi, s, s, dt)
         for hook in reversed(self.particle_hooks):
             hook.apply_grad(s, s, s, dt)
         for prepare_grad in reversed(self.substep_preparer_grads):
