@@ -136,6 +136,7 @@ class Elastic:
     """Fixed corotated hyperelasticity (Stomakhin et al. 2012)."""
 
     name = "elastic"
+    project_uses_lame = False  # whether ``project`` depends on mu or lam (its adjoint then reaches E and nu)
 
     @ti.func
     def kirchhoff(self, F, C, mu, lam, eta):
@@ -151,6 +152,11 @@ class Elastic:
     def project(self, F, mu, lam, yield_stress):
         return F
 
+    @ti.func
+    def project_vjp(self, F, mu, lam, yield_stress, out_bar):
+        """(dL/dF, dL/dmu, dL/dlam) of ``project``, given dL/d(its output)."""
+        return out_bar, 0.0, 0.0
+
 
 @ti.data_oriented
 class Plastic(Elastic):
@@ -164,6 +170,7 @@ class Plastic(Elastic):
     """
 
     name = "plastic"
+    project_uses_lame = True  # the yield limit scales with 1 / mu
 
     @ti.func
     def project(self, F, mu, lam, yield_stress):
@@ -180,6 +187,33 @@ class Plastic(Elastic):
         scale = limit / ti.sqrt(ti.max(norm2, limit * limit))
         return R @ (eye + mean * eye + scale * dev)
 
+    @ti.func
+    def project_vjp(self, F, mu, lam, yield_stress, out_bar):
+        """(dL/dF, dL/dmu, dL/dlam) of ``project`` (out = R Y, Y = (1 + mean) I + scale dev), given dL/dout."""
+        R = polar_rotation(F)
+        P = R.transpose() @ F
+        S = 0.5 * (P + P.transpose())
+        eye = ti.Matrix.identity(float, F.n)
+        strain = S - eye
+        mean = strain.trace() / F.n
+        dev = strain - mean * eye
+        limit = ti.sqrt(2.0 / 3.0) * yield_stress / (2.0 * mu)
+        norm2 = (dev * dev).sum()
+        scale = 1.0
+        dev_bar = ti.Matrix.zero(float, F.n, F.n)
+        mu_bar = 0.0
+        Y_bar = R.transpose() @ out_bar
+        scale_bar = (Y_bar * dev).sum()
+        if norm2 > limit * limit:  # on the yield surface: scale = limit / |dev|
+            scale = limit / ti.sqrt(norm2)
+            dev_bar = (-scale * scale_bar / norm2) * dev  # d scale / d dev = -scale dev / |dev|^2
+            mu_bar = -scale_bar * scale / mu  # d limit / d mu = -limit / mu
+        dev_bar += scale * Y_bar
+        strain_bar = dev_bar + ((Y_bar.trace() - dev_bar.trace()) / F.n) * eye
+        P_bar = 0.5 * (strain_bar + strain_bar.transpose())
+        R_bar = out_bar @ (eye + mean * eye + scale * dev).transpose() + F @ P_bar.transpose()
+        return R @ P_bar + polar_rotation_vjp(F, R, R_bar), mu_bar, 0.0
+
 
 @ti.data_oriented
 class Liquid:
@@ -192,6 +226,7 @@ class Liquid:
     """
 
     name = "liquid"
+    project_uses_lame = False
 
     @ti.func
     def kirchhoff(self, F, C, mu, lam, eta):
@@ -213,6 +248,12 @@ class Liquid:
     def project(self, F, mu, lam, yield_stress):
         J = F.determinant()
         return J ** (1.0 / F.n) * ti.Matrix.identity(float, F.n)
+
+    @ti.func
+    def project_vjp(self, F, mu, lam, yield_stress, out_bar):
+        """(dL/dF, dL/dmu, dL/dlam) of ``project``, given dL/d(its output): d J^(1/d) / dF = J^(1/d - 1) cof(F) / d."""
+        J = F.determinant()
+        return (out_bar.trace() * J ** (1.0 / F.n - 1.0) / F.n) * cofactor(F), 0.0, 0.0
 
 
 MATERIALS = {cls.name: cls for cls in (Elastic, Plastic, Liquid)}

@@ -71,13 +71,14 @@ class MPMAdjointKernels(MPMKernels):
                 g_affine += weight * g_node.outer_product(dpos)
                 g_x += grad_w * (g_node.dot(mom + affine @ dpos) + m_p * g_mass)
                 g_x -= weight * (affine.transpose() @ g_node)
-            self.v.grad[src, p] += m_p * g_mom
+            # each particle owns these adjoint entries: plain adds, not atomics
+            self.v.grad[src, p] = self.v.grad[src, p] + m_p * g_mom
             if ti.static(self.cfg.has_controls):
-                self.control.grad[p] += control_share * g_mom
+                self.control.grad[p] = self.control.grad[p] + control_share * g_mom
             for hook in ti.static(self.particle_hooks):
-                hook.output.grad[g, p] += g_mom
-            self.affine.grad[g, p] += g_affine
-            self.x.grad[src, p] += g_x
+                hook.output.grad[g, p] = hook.output.grad[g, p] + g_mom
+            self.affine.grad[g, p] = self.affine.grad[g, p] + g_affine
+            self.x.grad[src, p] = self.x.grad[src, p] + g_x
 
     @ti.func
     def velocity_grad(self, g, I, g_v):
@@ -123,8 +124,7 @@ class MPMAdjointKernels(MPMKernels):
     ):
         """Adjoint of ``_stress`` (affine = s tau(F, C, mu, lam) + m_p C, s = -dt V0 4 / dx^2): from
         dL/d(affine) to dL/dF, dL/dC and the body's dL/dE, dL/dnu (through the Lame parameters)."""
-        for p in range(start, end):
-            E, nu = self.E[b], self.nu[b]
+        for p in range(start, end):  # each particle owns its adjoint entries: plain adds, not atomics
             mu, lam = self._lame(b)
             m_p, vol = self.p_mass[b], self.p_vol[b]
             affine_bar = self.affine.grad[g, p]
@@ -132,18 +132,44 @@ class MPMAdjointKernels(MPMKernels):
             F_bar, C_bar, mu_bar, lam_bar = mat.kirchhoff_vjp(
                 self.F[src, p], self.C[src, p], mu, lam, self.viscosity[b], tau_bar
             )
-            self.F.grad[src, p] += F_bar
-            self.C.grad[src, p] += C_bar + m_p * affine_bar
-            # mu = E / (2 (1 + nu)), lam = E nu / ((1 + nu)(1 - 2 nu))
-            q = (1.0 + nu) * (1.0 - 2.0 * nu)
-            self.E.grad[b] += mu_bar / (2.0 * (1.0 + nu)) + lam_bar * nu / q
-            self.nu.grad[b] += -mu_bar * E / (2.0 * (1.0 + nu) ** 2) + lam_bar * E * (1.0 + 2.0 * nu * nu) / (q * q)
+            self.F.grad[src, p] = self.F.grad[src, p] + F_bar
+            self.C.grad[src, p] = self.C.grad[src, p] + C_bar + m_p * affine_bar
+            self._lame_grad(b, mu_bar, lam_bar)
+
+    @ti.kernel
+    def _advect_adjoint(
+        self, mat: ti.template(), b: ti.i32, start: ti.i32, end: ti.i32, src: ti.i32, dst: ti.i32, dt: float
+    ):
+        """Adjoint of ``_advect`` (x' = x + dt v', F' = project((I + dt C') F)): from dL/dx', dL/dF' to
+        dL/dx, dL/dv', dL/dC', dL/dF and the body's dL/dE, dL/dnu (a plastic body's yield limit
+        depends on mu)."""
+        for p in range(start, end):  # each particle owns its adjoint entries: plain adds, not atomics
+            mu, lam = self._lame(b)
+            x_bar = self.x.grad[dst, p]
+            self.x.grad[src, p] = self.x.grad[src, p] + x_bar
+            self.v.grad[dst, p] = self.v.grad[dst, p] + dt * x_bar
+            F = self.F[src, p]
+            step = ti.Matrix.identity(float, self.dim) + dt * self.C[dst, p]
+            trial_bar, mu_bar, lam_bar = mat.project_vjp(step @ F, mu, lam, self.yield_stress[b], self.F.grad[dst, p])
+            self.C.grad[dst, p] = self.C.grad[dst, p] + dt * trial_bar @ F.transpose()
+            self.F.grad[src, p] = self.F.grad[src, p] + step.transpose() @ trial_bar
+            if ti.static(mat.project_uses_lame):  # else a zero added to E and nu by every particle
+                self._lame_grad(b, mu_bar, lam_bar)
+
+    @ti.func
+    def _lame_grad(self, b, mu_bar, lam_bar):
+        """Add dL/dE and dL/dnu of body b from dL/dmu and dL/dlam: mu = E / (2 (1 + nu)), lam = E nu / q,
+        q = (1 + nu)(1 - 2 nu)."""
+        E, nu = self.E[b], self.nu[b]
+        q = (1.0 + nu) * (1.0 - 2.0 * nu)
+        self.E.grad[b] += mu_bar / (2.0 * (1.0 + nu)) + lam_bar * nu / q
+        self.nu.grad[b] += -mu_bar * E / (2.0 * (1.0 + nu) ** 2) + lam_bar * E * (1.0 + 2.0 * nu * nu) / (q * q)
 
     def _substep_grad(self, s: int, dt: float, control_share: float) -> None:
         """Adjoint of substep s (slots s -> s + 1); its grid and stress copies are still held."""
         for b in reversed(range(len(self.bodies))):
             lo, hi = self.ranges[b]
-            self._advect.grad(self.materials[b], b, lo, hi, s, s + 1, dt)
+            self._advect_adjoint(self.materials[b], b, lo, hi, s, s + 1, dt)
         self._g2p_adjoint(self._serial, s, s + 1, s, self._grid_out)
         self._gathered_grad_to_source(s, self._grid_out)
         for hook in reversed(self.grid_hooks):
