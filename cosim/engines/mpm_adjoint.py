@@ -1,13 +1,15 @@
-"""Hand-written adjoints of the MPM's particle-grid transfers (P2G scatter, G2P gather).
+"""Hand-written adjoints of the MPM's particle kernels (P2G scatter, G2P gather, stress, advection).
 
 Taichi's reverse-mode autodiff of the transfer kernels unrolls the 3^d stencil
 into a large reverse program: in 3D the reverse P2G and G2P alone compiled for
 about 50 s (measured). The adjoints here are written out instead and loop over
 the stencil at run time, so each compiles in under half a second and runs as
-fast as an unrolled one (measured; docs/benchmarks.md). The per-particle stress's
-adjoint is written out too (``_stress_adjoint``: the 3D polar decomposition's
-derivative is one 3x3 solve, where Taichi's reverse mode replayed its Newton
-iterations); the grid update and the return mapping keep Taichi's autodiff.
+fast as an unrolled one (measured; docs/benchmarks.md). The per-particle stress
+and the advection with its return mapping are written out too (``_stress_adjoint``,
+``_advect_adjoint``, with the materials' ``kirchhoff_vjp`` and ``project_vjp``): the
+3D polar decomposition's derivative is one 3x3 solve, where Taichi's reverse mode
+replayed its Newton iterations. Only the grid update (and the contact hooks' own
+rules) keep Taichi's autodiff.
 
 Notation for one particle at x with stencil nodes i: weights w_i(x) (products of
 per-axis quadratic B-splines), offsets dpos_i = (i - x / dx) dx. Both depend on x:
