@@ -233,6 +233,9 @@ def cmd_bench(args) -> int:
         seed=args.seed,
         steps=args.steps,
         scenes=args.scene,
+        sizes=args.sizes,
+        baseline=args.baseline,
+        profile=args.profile,
     )
 
 
@@ -403,8 +406,20 @@ def make_parser() -> argparse.ArgumentParser:
     b.add_argument("--out", default="out/bench", help="folder for the results (CSV; cloth: JSON)")
     b.add_argument("--quick", action="store_true", help="fewer substeps (a smoke run)")
     b.add_argument(
-        "--repeat", type=positive_int, default=3, help="contact, coupling, cloth: repetitions; times are medians"
+        "--repeat",
+        type=positive_int,
+        default=3,
+        help="contact, coupling, cloth, mpm --baseline: repetitions; times are medians",
     )
+    b.add_argument("--sizes", action="store_true", help="mpm: 3D float32 from 10k to 1M particles, 8 per cell")
+    b.add_argument(
+        "--baseline",
+        type=Path,
+        metavar="DIR",
+        help="mpm: also run each configuration with the cosim in DIR (made by scripts/baseline_env.sh, "
+        "a virtualenv or a checkout), interleaved; prints current/baseline ratios",
+    )
+    b.add_argument("--profile", action="store_true", help="mpm: Taichi's kernel profile of 3D 64³ float32")
     b.add_argument("--count", type=positive_int, default=200, help="fuzz: how many random scenes (default 200)")
     b.add_argument("--seed", type=int, default=0, help="fuzz: the first scene's seed; the others follow (default 0)")
     b.add_argument("--steps", type=positive_int, default=10_000, help="long: macro steps per scene (default 10000)")

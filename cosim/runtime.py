@@ -16,7 +16,9 @@ Threads: Taichi's CPU backend uses every core unless ``COSIM_CPU_THREADS`` caps 
 the scale-out workers, ``cosim.scale``, so that W workers on C cores do not run W x C threads).
 Kernel cache: Taichi keeps compiled kernels in its offline cache (``~/.cache/taichi`` by
 default); ``COSIM_TAICHI_CACHE=DIR`` puts it elsewhere (a shared disk on a cluster, a scratch
-folder in CI). Both options are chosen by arch in ``init_options``; what the engines choose by
+folder in CI). Kernel profile: ``COSIM_KERNEL_PROFILER=1`` turns on Taichi's kernel profiler (each
+launch timed; ``ti.profiler.print_kernel_profiler_info()``), used by ``cosim bench mpm --profile``.
+These options are chosen by arch in ``init_options``; what the engines choose by
 arch is in ``cosim.engines.arch``.
 
 Gradients in float32 always compile with advanced optimisation: without it Taichi 1.7.4's
@@ -103,7 +105,7 @@ def ensure_taichi(arch: str = "cpu", precision: str = "float64", gradients: bool
 def init_options(arch: str) -> dict:
     """The ``ti.init`` options that depend on the arch and the environment (see the module docstring):
     ``cpu_max_num_threads`` from ``COSIM_CPU_THREADS`` on a CPU, ``offline_cache_file_path`` from
-    ``COSIM_TAICHI_CACHE``."""
+    ``COSIM_TAICHI_CACHE``, ``kernel_profiler`` from ``COSIM_KERNEL_PROFILER=1``."""
     from cosim.engines.arch import CPU_ARCHES
 
     options = {}
@@ -115,6 +117,8 @@ def init_options(arch: str) -> dict:
     cache = os.environ.get("COSIM_TAICHI_CACHE", "")
     if cache:
         options["offline_cache_file_path"] = cache
+    if os.environ.get("COSIM_KERNEL_PROFILER", "") == "1":
+        options["kernel_profiler"] = True
     return options
 
 

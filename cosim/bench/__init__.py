@@ -30,13 +30,18 @@ def run_bench(
     seed: int = 0,
     steps: int = 10_000,
     scenes: list[str] | None = None,
+    sizes: bool = False,
+    baseline: Path | None = None,
+    profile: bool = False,
 ) -> int:
     """Run benchmark ``what`` (one of ``BENCHMARKS``), writing into ``out_dir``; returns the exit code.
 
     ``quick``: fewer steps (a smoke run); ``repeat`` (contact, coupling, cloth): repetitions, times are medians;
     ``workers`` / ``address`` (contact, accuracy: their independent runs): on Ray (``cosim.scale.pool``) when more than one;
     ``count`` / ``seed`` (fuzz): how many random scenes, from which seed (``workers``: its processes);
-    ``steps`` / ``scenes`` (long): macro steps per scene, which shipped scenes (default one of each type).
+    ``steps`` / ``scenes`` (long): macro steps per scene, which shipped scenes (default one of each type);
+    ``sizes`` / ``baseline`` / ``profile`` (mpm): 10k-1M particles; current/baseline ratios against the
+    cosim in that folder (``repeat`` runs each); Taichi's kernel profile (``cosim.bench.mpm``).
     """
     if what == "long":
         from cosim.bench.long_runs import run_long_bench
@@ -68,5 +73,5 @@ def run_bench(
     if what == "mpm":
         from cosim.bench.mpm import run_mpm_bench
 
-        return run_mpm_bench(out_dir, quick=quick)
+        return run_mpm_bench(out_dir, quick=quick, sizes=sizes, baseline=baseline, repeat=repeat, profile=profile)
     raise ValueError(f"unknown benchmark {what!r}; choose one of {BENCHMARKS}")

@@ -1,18 +1,26 @@
 """`cosim bench mpm`: MPM throughput, backward/forward cost and peak memory.
 
-Each configuration runs in its own process (Taichi's precision is fixed per
-process, and the process's peak RSS is the configuration's memory). Reported:
-forward and forward+backward particle-substeps per second (compile excluded),
-the backward/forward time ratio, peak resident memory and the hardware.
+Each configuration runs in its own process (Taichi's precision is fixed per process, and
+the process's peak RSS is the configuration's memory): ``cosim/bench/mpm_measure.py``, run by
+path with a given interpreter, so that the same measurement also runs against a baseline
+checkout (``--baseline``, ``cosim.bench.mpm_baseline``). Reported: forward and
+forward+backward particle-substeps per second (compile excluded), the backward/forward time
+ratio, peak resident memory and the hardware.
+
+Modes: the four ``CONFIGS`` (default); ``--sizes``, 3D float32 from 10k to 1M particles
+(``SIZES``, grid from ``sized_grid``); ``--baseline DIR``, current/baseline ratios of either
+set; ``--profile``, Taichi's kernel profiler over a forward and a backward pass of 3D 64³ float32.
 """
 
 from __future__ import annotations
 
 import csv
 import json
+import math
+import os
 import subprocess
 import sys
-import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
 CONFIGS = [
@@ -21,118 +29,154 @@ CONFIGS = [
     {"dim": 3, "cells": 64, "side": 31, "precision": "float32"},  # 29,791 particles
     {"dim": 3, "cells": 64, "side": 31, "precision": "float64"},
 ]
-COLUMNS = [
-    "dim",
-    "precision",
-    "grid",
-    "particles",
-    "fwd_Mpss",
-    "fwd_bwd_Mpss",
-    "bwd_fwd_ratio",
-    "peak_MiB",
-    "compile_s",
+# (particles wanted, substeps, macro steps): fewer steps at large N keep the sweep near 10 minutes,
+# and fewer substeps bound the gradient engine's K grids (K x 8 M nodes at 1M particles).
+SIZES = [(10_000, 20, 10), (30_000, 20, 10), (100_000, 20, 4), (300_000, 10, 3), (1_000_000, 5, 2)]
+FILL = 0.25  # the block's side over the domain's: 64³ for the 31³ block of CONFIGS
+MEASURE = Path(__file__).with_name("mpm_measure.py")
+# (key, header, format) of the printed table; the CSV has every key
+TABLE = [
+    ("dim", "dim", ">3"),
+    ("precision", "precision", ">9"),
+    ("grid", "grid", ">7"),
+    ("particles", "particles", ">9"),
+    ("steps", "steps", ">6"),
+    ("fwd_Mpss", "fwd M/s", ">8.2f"),
+    ("fwd_bwd_Mpss", "f+b M/s", ">8.3f"),
+    ("bwd_fwd_ratio", "bwd/fwd", ">7.2f"),
+    ("peak_MiB", "peak MiB", ">8.0f"),
+    ("fwd_B_per_particle", "fwd B/p", ">7.0f"),
+    ("grad_B_per_particle", "grad B/p", ">8.0f"),
+    ("compile_s", "compile s", ">9.1f"),
 ]
 
 
-def measure(dim: int, cells: int, side: int, precision: str, substeps: int, macro_steps: int) -> dict:
-    """One configuration, in this process: an elastic block falling onto the floor."""
-    import resource
+@dataclass
+class Interpreter:
+    """A Python that runs ``mpm_measure.py``: its executable, environment and the cosim it must import."""
 
-    import numpy as np
-
-    from cosim.runtime import ensure_taichi
-
-    ensure_taichi("cpu", precision)
-    from cosim.engines.mpm import MPMConfig, MPMEngine, ParticleBody
-
-    dx = 1.0 / cells
-    h = 0.5 * dx
-    axis = 0.5 - 0.5 * side * h + h * np.arange(side)
-    pts = np.stack(np.meshgrid(*([axis] * dim), indexing="ij"), -1).reshape(-1, dim)
-    pts[:, 1] -= 0.1
-    body = ParticleBody("block", "elastic", 1e4, 0.3, 1000.0, h**dim, pts, np.zeros_like(pts))
-    gravity = (0.0, -9.81) + (0.0,) * (dim - 2)
-    dt = 1e-4
-
-    fwd = MPMEngine(MPMConfig(dim, (cells,) * dim, dx, gravity), [body])
-    t = time.perf_counter()
-    fwd.advance(dt, 1)
-    fwd.state()
-    compile_s = time.perf_counter() - t
-    t = time.perf_counter()
-    for _ in range(macro_steps):
-        fwd.advance(dt, substeps)
-    fwd.state()  # synchronise
-    fwd_s = time.perf_counter() - t
-
-    grad = MPMEngine(MPMConfig(dim, (cells,) * dim, dx, gravity, requires_grad=True, grad_substeps=substeps), [body])
-    zero = {k: np.zeros_like(v) for k, v in grad.state().items()}
-    seed = {"state": dict(zero, x=np.ones_like(zero["x"]))}
-    inputs = {"dt": dt, "substeps": substeps}
-    t = time.perf_counter()
-    _, rec0 = grad.step(inputs)
-    rec0.token = -1  # force the recompute path too
-    grad.vjp(rec0, seed)
-    compile_s += time.perf_counter() - t
-    records = []
-    t = time.perf_counter()
-    for _ in range(macro_steps):
-        records.append(grad.step(inputs)[1])
-    tape_fwd_s = time.perf_counter() - t
-    t = time.perf_counter()
-    g = seed
-    for rec in reversed(records):
-        g = {"state": grad.vjp(rec, g)["state"]}
-    bwd_s = time.perf_counter() - t
-    n = len(pts)
-    work = n * substeps * macro_steps
-    return {
-        "dim": dim,
-        "precision": precision,
-        "grid": f"{cells}^{dim}",
-        "particles": n,
-        "fwd_Mpss": work / fwd_s / 1e6,
-        "fwd_bwd_Mpss": work / (tape_fwd_s + bwd_s) / 1e6,
-        "bwd_fwd_ratio": bwd_s / tape_fwd_s,
-        "peak_MiB": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
-        "compile_s": compile_s,
-    }
+    python: str
+    cosim_root: Path  # the folder holding the cosim package it imports
+    env: dict = field(default_factory=dict)
+    label: str = "current"
 
 
-def run_mpm_bench(out_dir: Path, quick: bool = False) -> int:
-    """Run every configuration in a subprocess; write DIR/mpm.csv and print a table."""
-    from cosim.run import hardware_line
+def current_interpreter() -> Interpreter:
+    """This interpreter, importing this process's cosim (put first on PYTHONPATH)."""
+    import cosim
 
-    out_dir.mkdir(parents=True, exist_ok=True)
+    root = Path(cosim.__file__).resolve().parents[1]
+    path = os.pathsep.join([str(root)] + [p for p in [os.environ.get("PYTHONPATH", "")] if p])
+    return Interpreter(sys.executable, root, dict(os.environ, PYTHONPATH=path))
+
+
+def sized_grid(particles: int, fill: float = FILL) -> dict:
+    """3D grid and block for about ``particles`` particles at 8 per cell.
+
+    The block is sampled at 2 particles per axis per cell (8 per cell), ``side`` = round(N^(1/3))
+    particles per axis, so it spans side/2 cells; the grid's ``cells`` per axis grow with
+    N^(1/3) so that the block spans ``fill`` of the domain's side (rounded up to a multiple of 8).
+    """
+    side = round(particles ** (1 / 3))
+    cells = 8 * math.ceil(side / (2 * fill) / 8)
+    return {"dim": 3, "cells": cells, "side": side, "precision": "float32"}
+
+
+def size_configs(quick: bool = False) -> list[dict]:
+    """The ``--sizes`` configurations (``--quick``: up to 30k particles, 5 x 2 steps)."""
+    if quick:
+        return [{**sized_grid(n), "substeps": 5, "macro_steps": 2} for n, _, _ in SIZES[:2]]
+    return [{**sized_grid(n), "substeps": k, "macro_steps": m} for n, k, m in SIZES]
+
+
+def fixed_configs(quick: bool = False) -> list[dict]:
+    """The four ``CONFIGS`` with their steps (``--quick``: 5 x 2)."""
     substeps, macro = (5, 2) if quick else (20, 10)
-    rows = []
-    for cfg in CONFIGS:
-        args = json.dumps({**cfg, "substeps": substeps, "macro_steps": macro})
-        cmd = [sys.executable, "-m", "cosim.bench.mpm", args]
-        res = subprocess.run(cmd, capture_output=True, text=True, check=False)  # a failure prints its stderr
-        if res.returncode != 0:
-            print(res.stderr[-2000:], file=sys.stderr)
-            return 1
-        rows.append(json.loads(res.stdout.strip().splitlines()[-1]))
-        r = rows[-1]
-        print(f"  done {r['dim']}D {r['precision']}: {r['fwd_Mpss']:.2f} M particle-substeps/s forward", flush=True)
-    with open(out_dir / "mpm.csv", "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=COLUMNS)
+    return [{**cfg, "substeps": substeps, "macro_steps": macro} for cfg in CONFIGS]
+
+
+def run_config(cfg: dict, interp: Interpreter | None = None) -> dict:
+    """Measure one configuration in a fresh process of ``interp`` (default: this cosim); a RuntimeError
+    with the child's stderr if it fails, or if it imported another cosim than ``interp``'s."""
+    interp = interp or current_interpreter()
+    cmd = [interp.python, str(MEASURE), json.dumps(cfg)]
+    res = subprocess.run(cmd, capture_output=True, text=True, env=interp.env, cwd=interp.cosim_root, check=False)
+    if res.returncode != 0:
+        raise RuntimeError(f"{interp.label} run of {cfg} failed (exit {res.returncode}):\n{res.stderr[-2000:]}")
+    row = json.loads(res.stdout.strip().splitlines()[-1])
+    if Path(row["cosim"]).resolve() != (interp.cosim_root / "cosim").resolve():
+        raise RuntimeError(f"the {interp.label} run imported cosim from {row['cosim']}, not {interp.cosim_root}")
+    return row
+
+
+def print_table(rows: list[dict], columns: list[tuple[str, str, str]]) -> None:
+    """Rows as a fixed-width table of the given (key, header, format) columns."""
+    widths = [int(fmt[1:].split(".")[0]) for _, _, fmt in columns]  # formats are ">W" or ">W.Pf"
+    print(" ".join(f"{h:>{w}}" for (_, h, _), w in zip(columns, widths, strict=True)))
+    for r in rows:
+        print(" ".join(format(r[k], fmt) for k, _, fmt in columns))
+
+
+def write_csv(path: Path, rows: list[dict]) -> None:
+    """Rows (dicts with the same keys) to a CSV file."""
+    with open(path, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
         writer.writeheader()
         writer.writerows(rows)
-    print(f"\nMPM benchmark on {hardware_line()}; {substeps} substeps x {macro} macro steps, elastic block, dt 1e-4 s")
-    print(
-        f"{'dim':>3} {'precision':>9} {'grid':>6} {'particles':>9} {'fwd M/s':>8} {'f+b M/s':>8} "
-        f"{'bwd/fwd':>7} {'peak MiB':>8} {'compile s':>9}"
-    )
-    for r in rows:
-        print(
-            f"{r['dim']:>3} {r['precision']:>9} {r['grid']:>6} {r['particles']:>9} {r['fwd_Mpss']:>8.2f} "
-            f"{r['fwd_bwd_Mpss']:>8.2f} {r['bwd_fwd_ratio']:>7.2f} {r['peak_MiB']:>8.0f} {r['compile_s']:>9.1f}"
-        )
-    print(f"wrote {out_dir / 'mpm.csv'}")
+    print(f"wrote {path}")
+
+
+def run_throughput(out_dir: Path, configs: list[dict], name: str) -> int:
+    """Every configuration in its own process; prints a table and writes ``out_dir/<name>.csv``."""
+    from cosim.run import hardware_line
+
+    rows = []
+    for cfg in configs:
+        rows.append({k: v for k, v in run_config(cfg).items() if k != "cosim"})
+        r = rows[-1]
+        print(f"  done {r['dim']}D {r['precision']} {r['particles']:,}: {r['fwd_Mpss']:.2f} M/s forward", flush=True)
+    print(f"\nMPM benchmark on {hardware_line()}; steps = substeps x macro steps, elastic block, dt 1e-4 s")
+    print_table(rows, TABLE)
+    write_csv(out_dir / f"{name}.csv", rows)
     return 0
 
 
-if __name__ == "__main__":
-    print(json.dumps(measure(**json.loads(sys.argv[1]))))
+def run_profile(out_dir: Path, top: int = 12) -> int:
+    """Taichi's kernel profiler over 3D 64³ float32: ms per substep of the top kernels, forward and backward."""
+    from cosim.run import hardware_line
+
+    interp = current_interpreter()
+    interp.env["COSIM_KERNEL_PROFILER"] = "1"
+    row = run_config({**CONFIGS[2], "substeps": 20, "macro_steps": 3, "profile": True}, interp)
+    print(f"\nKernel profile, 3D 64³ float32, {row['particles']:,} particles, 20 substeps x 3, on {hardware_line()}")
+    rows = []
+    for phase, kernels in row["profile"].items():
+        total = sum(k[1] for k in kernels)
+        print(f"\n{phase}: {total:.2f} ms per substep in kernels (backward: with the checkpoint recompute)")
+        for name, ms, launches in kernels[:top]:
+            print(f"  {ms:8.3f} ms {100 * ms / total:5.1f}% {launches:6.2f} launches  {name}")
+        rows += [
+            {"phase": phase, "kernel": k[0], "ms_per_substep": k[1], "launches_per_substep": k[2]} for k in kernels
+        ]
+    write_csv(out_dir / "mpm_profile.csv", rows)
+    return 0
+
+
+def run_mpm_bench(
+    out_dir: Path, quick: bool = False, sizes: bool = False, baseline: Path | None = None, repeat: int = 3,
+    profile: bool = False,
+) -> int:  # fmt: skip
+    """``cosim bench mpm``: the chosen mode (module docstring) into ``out_dir``; returns the exit code."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    configs = size_configs(quick) if sizes else fixed_configs(quick)
+    try:
+        if profile:
+            return run_profile(out_dir)
+        if baseline is not None:
+            from cosim.bench.mpm_baseline import run_baseline_bench
+
+            return run_baseline_bench(out_dir, configs, baseline, repeat, "mpm_sizes" if sizes else "mpm")
+        return run_throughput(out_dir, configs, "mpm_sizes" if sizes else "mpm")
+    except RuntimeError as err:
+        print(err, file=sys.stderr)
+        return 1
