@@ -18,6 +18,7 @@ import csv
 import json
 import math
 import os
+import re
 import subprocess
 import sys
 from dataclasses import dataclass, field
@@ -34,6 +35,13 @@ CONFIGS = [
 SIZES = [(10_000, 20, 10), (30_000, 20, 10), (100_000, 20, 4), (300_000, 10, 3), (1_000_000, 5, 2)]
 FILL = 0.25  # the block's side over the domain's: 64³ for the 31³ block of CONFIGS
 MEASURE = Path(__file__).with_name("mpm_measure.py")
+# Taichi's kernel cache for the children (any version reads TI_* variables; ours win if set): a
+# folder of its own, since the shared ~/.cache/taichi is capped at 100 MB with LRU eviction and,
+# with other sessions compiling, lost the baseline's 3D adjoint kernels (230 s to compile) between runs.
+CACHE_ENV = {
+    "TI_OFFLINE_CACHE_FILE_PATH": str(Path.home() / ".cache" / "cosim" / "taichi_bench_mpm"),
+    "TI_OFFLINE_CACHE_MAX_SIZE_OF_FILES": str(2**30),  # a C int in Taichi: under 2 GiB
+}
 # (key, header, format) of the printed table; the CSV has every key
 TABLE = [
     ("dim", "dim", ">3"),
@@ -100,7 +108,8 @@ def run_config(cfg: dict, interp: Interpreter | None = None) -> dict:
     with the child's stderr if it fails, or if it imported another cosim than ``interp``'s."""
     interp = interp or current_interpreter()
     cmd = [interp.python, str(MEASURE), json.dumps(cfg)]
-    res = subprocess.run(cmd, capture_output=True, text=True, env=interp.env, cwd=interp.cosim_root, check=False)
+    env = {**CACHE_ENV, **interp.env}
+    res = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=interp.cosim_root, check=False)
     if res.returncode != 0:
         raise RuntimeError(f"{interp.label} run of {cfg} failed (exit {res.returncode}):\n{res.stderr[-2000:]}")
     row = json.loads(res.stdout.strip().splitlines()[-1])
@@ -141,7 +150,26 @@ def run_throughput(out_dir: Path, configs: list[dict], name: str) -> int:
     return 0
 
 
-def run_profile(out_dir: Path, top: int = 12) -> int:
+def by_kernel(records: list) -> list[list]:
+    """Taichi's per-task records [name, ms, count] summed per kernel: a launch's tasks
+    (``_p2g_c84_0_kernel_1_range_for``) and its template instances (``_c84_0``, ``_c84_1``) are one row
+    ``[kernel, ms, launches]`` (``_p2g``; adjoints keep ``_reverse_grad``), most time first."""
+    launches: dict[str, list] = {}
+    for name, ms, count in records:
+        instance, _, _ = name.partition("_kernel_")
+        row = launches.setdefault(instance, [0.0, 0.0])
+        row[0] += ms
+        row[1] = max(row[1], count)  # every task of a launch runs once per launch
+    kernels: dict[str, list] = {}
+    for instance, (ms, count) in launches.items():
+        name = re.sub(r"_c\d+_\d+", "", instance)
+        row = kernels.setdefault(name, [name, 0.0, 0.0])
+        row[1] += ms
+        row[2] += count
+    return sorted(kernels.values(), key=lambda r: -r[1])
+
+
+def run_profile(out_dir: Path, top: int = 10) -> int:
     """Taichi's kernel profiler over 3D 64³ float32: ms per substep of the top kernels, forward and backward."""
     from cosim.run import hardware_line
 
@@ -149,15 +177,15 @@ def run_profile(out_dir: Path, top: int = 12) -> int:
     interp.env["COSIM_KERNEL_PROFILER"] = "1"
     row = run_config({**CONFIGS[2], "substeps": 20, "macro_steps": 3, "profile": True}, interp)
     print(f"\nKernel profile, 3D 64³ float32, {row['particles']:,} particles, 20 substeps x 3, on {hardware_line()}")
+    print("ms per substep in each kernel (backward: its forward-named kernels are the checkpoint recompute)")
     rows = []
-    for phase, kernels in row["profile"].items():
+    for phase, records in row["profile"].items():
+        kernels = by_kernel(records)
         total = sum(k[1] for k in kernels)
-        print(f"\n{phase}: {total:.2f} ms per substep in kernels (backward: with the checkpoint recompute)")
+        print(f"\n{phase}: {total:.2f} ms per substep in kernels")
         for name, ms, launches in kernels[:top]:
             print(f"  {ms:8.3f} ms {100 * ms / total:5.1f}% {launches:6.2f} launches  {name}")
-        rows += [
-            {"phase": phase, "kernel": k[0], "ms_per_substep": k[1], "launches_per_substep": k[2]} for k in kernels
-        ]
+        rows += [{"phase": phase, "kernel": k, "ms_per_substep": ms, "launches_per_substep": n} for k, ms, n in kernels]
     write_csv(out_dir / "mpm_profile.csv", rows)
     return 0
 
