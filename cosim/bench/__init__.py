@@ -43,6 +43,10 @@ def run_bench(
     ``sizes`` / ``baseline`` / ``profile`` (mpm): 10k-1M particles; current/baseline ratios against the
     cosim in that folder (``repeat`` runs each); Taichi's kernel profile (``cosim.bench.mpm``).
     """
+    if what != "mpm" and (sizes or baseline is not None or profile):
+        from cosim.errors import InputError
+
+        raise InputError(f"--sizes, --baseline and --profile are options of `bench mpm`, not of `bench {what}`")
     if what == "long":
         from cosim.bench.long_runs import run_long_bench
 

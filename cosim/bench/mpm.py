@@ -195,6 +195,10 @@ def run_mpm_bench(
     profile: bool = False,
 ) -> int:  # fmt: skip
     """``cosim bench mpm``: the chosen mode (module docstring) into ``out_dir``; returns the exit code."""
+    if profile and (sizes or baseline is not None):
+        from cosim.errors import InputError
+
+        raise InputError("--profile runs alone (3D 64³ float32); leave out --sizes and --baseline")
     out_dir.mkdir(parents=True, exist_ok=True)
     configs = size_configs(quick) if sizes else fixed_configs(quick)
     try:
