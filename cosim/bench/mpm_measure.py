@@ -57,6 +57,16 @@ def _engine(dim: int, cells: int, pts, substeps: int | None):
 
 
 # ------------------------------------------------------------ the two engine APIs
+def _start_taichi(precision: str) -> None:
+    """Taichi for a run with gradients (newer versions start float32 gradient runs optimised)."""
+    import inspect
+
+    from cosim.runtime import ensure_taichi
+
+    grad = {"gradients": True} if "gradients" in inspect.signature(ensure_taichi).parameters else {}
+    ensure_taichi("cpu", precision, **grad)
+
+
 def _contract(engine) -> bool:
     """True for the engine contract, False for b24c315's API (no ``advance`` there)."""
     return hasattr(engine, "advance")
@@ -157,9 +167,8 @@ def measure(
 ) -> dict:
     """One configuration: forward alone, then a recorded forward and its backward (see the module docstring)."""
     import cosim
-    from cosim.runtime import ensure_taichi
 
-    ensure_taichi("cpu", precision)
+    _start_taichi(precision)
     base = _peak_mib()
     pts = block_points(dim, cells, side)
     n = len(pts)
