@@ -12,7 +12,9 @@ through their contracts (``cosim.engines.contract``)::
 and its reverse (``vjp``; engine-to-engine reactions, a cloth's contact on rigid links, are
 not differentiated). It picks the substep count K from the CFL bound (or checks a
 fixed one) and stops with a ``SimulationError`` naming the step, the body and the
-quantity as soon as a step produces NaN/inf, violates the CFL bound or leaves the grid.
+quantity (and for NaN/inf the substep) as soon as a step produces NaN/inf, violates the CFL
+bound or leaves the grid; the MPM engine checks its particles on the device and hands over
+per-body counts (``MPMEngine.health``), not its state.
 ``rollout`` is the one loop behind ``cosim run``, the objective, gradcheck, optimize and
 the benchmarks. Scenes assemble a system with ``cosim.scene.build_system``.
 """

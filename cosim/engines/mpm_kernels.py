@@ -8,9 +8,8 @@ Particle state lives in *slots*: ``x[slot, p]`` etc. A forward-only engine
 uses three slots and one grid: a step alternates between the two slots its
 start is not in, so the state it started from stays for a redo. An engine
 built with ``requires_grad`` keeps ``substeps + 1`` slots and one grid (and
-stress scratch) per substep, so
-one macro step is all resident for the adjoint (``cosim.engines.mpm_adjoint``),
-which never re-runs P2G.
+stress scratch) per substep, so one macro step is all resident for the adjoint
+(``cosim.engines.mpm_adjoint``), which never re-runs P2G.
 
 One substep, split into the phases a coupler drives (see DESIGN.md):
 
