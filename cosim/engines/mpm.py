@@ -123,8 +123,8 @@ class MPMEngine(MPMAdjointKernels):
         return max(h.speed for h in self.health().values())
 
     def health(self) -> dict[str, BodyHealth]:
-        """Per body name: the current particles' largest velocity component, non-finite and out-of-grid
-        counts, and the first substep of the last checked step that produced a NaN or inf
+        """Per body name: the current particles' largest velocity component [m/s], non-finite and
+        out-of-grid counts, and the first substep of the last step that left a NaN or inf
         (``cosim.engines.mpm_watch``): surveyed on the device once per state, a few numbers read."""
         if self._known_health is None:
             self._known_health = self.watch.survey(self._slot)
