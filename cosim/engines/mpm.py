@@ -13,7 +13,7 @@ Boundary sources (``cosim.couplers.boundary``) are attached by name; each step's
 knows sources and hooks only through their methods, never by type.
 """
 
-from collections import Counter
+import weakref
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -61,7 +61,8 @@ class MPMEngine(MPMAdjointKernels):
         self.boundaries: dict = {}  # name -> boundary source
         self._known_state = None  # the state the last step returned, while it is still the current one
         self._known_health = None  # the survey of the current state, once made
-        self._writes: Counter = Counter()  # per particle slot: how often it was overwritten (SlotState)
+        self._views: list = []  # weak references to the SlotState views handed out
+        self._previous_start = -1  # forward only: the slot the last step started from
         super().__init__(config, bodies)
         self._material = self.material()  # E, nu per body now: the derived quantities' one source
 
@@ -172,7 +173,7 @@ class MPMEngine(MPMAdjointKernels):
         Returns ({state, reactions {source: Reactions}, health {body: BodyHealth}}, record), ``health`` the
         device's NaN / speed / domain survey of the state after. That state is also the next step's record
         of the state before it: with gradients read once per step (the tape keeps it), else a ``SlotState``
-        read on first access, valid until the step after next. Do not modify it in place."""
+        read on first access (and kept when its slot is overwritten). Do not modify it in place."""
         dt, K = float(inputs["dt"]), int(inputs["substeps"])
         boundaries = inputs.get("boundaries") or {}
         missing = sorted(set(self.boundaries) - set(boundaries))
@@ -190,7 +191,11 @@ class MPMEngine(MPMAdjointKernels):
     def _snapshot(self) -> dict[str, np.ndarray] | SlotState:
         """The current state for a record or the outputs: read now with gradients (the tape keeps it),
         else left on the device until something reads it."""
-        return self.state() if self.cfg.requires_grad else SlotState(self, self._slot)
+        if self.cfg.requires_grad:
+            return self.state()
+        view = SlotState(self, self._slot)
+        self._views = [ref for ref in self._views if ref() is not None] + [weakref.ref(view)]
+        return view
 
     def advance(self, dt: float, substeps: int, impulse: np.ndarray | None = None) -> int:
         """``substeps`` substeps of ``dt`` seconds with the boundaries as written; returns the step's token.
@@ -207,6 +212,7 @@ class MPMEngine(MPMAdjointKernels):
         else:
             route = self._rotation(substeps)
             self._forget(*{dst for _, dst in route})
+            self._previous_start = self._slot
         for s, (src, dst) in enumerate(route):
             self._substep(src, dst, dt, share, s)
             self._slot = dst
@@ -275,22 +281,22 @@ class MPMEngine(MPMAdjointKernels):
     # ------------------------------------------------------------ slots
     def _rotation(self, substeps: int) -> list[tuple[int, int]]:
         """Forward-only (source, destination) slots of each substep: from the current slot into the two
-        others in turn, so the state before the step stays in its slot until the next step (a step redone
-        after a CFL violation restarts from it, and its record reads it)."""
+        slots that neither this step nor the last one started from, in turn. The state before the step
+        stays for a redo after a CFL violation and for its record's readers; the last step's stays while
+        the coupled loop still holds that record, so its view is gone before its slot is overwritten."""
         start = self._slot
-        a, b = (k for k in range(self.n_slots) if k != start)
+        a, b = [k for k in range(self.n_slots) if k not in (start, self._previous_start)][:2]
         return [(start if s == 0 else (a, b)[(s - 1) % 2], (a, b)[s % 2]) for s in range(substeps)]
 
     def _forget(self, *written: int) -> None:
         """The current state changes and slots ``written`` are about to be overwritten: drop what was
-        known of the state and outdate the ``SlotState`` views of those slots."""
+        known of the state, and let the ``SlotState`` views of those slots that are still held read
+        their keys first."""
         self._known_state = self._known_health = None
-        for slot in written:
-            self._writes[slot] += 1
-
-    def slot_version(self, slot: int) -> int:
-        """How often particle slot ``slot`` has been overwritten (a ``SlotState`` is valid while unchanged)."""
-        return self._writes[slot]
+        for ref in self._views:
+            view = ref()
+            if view is not None and view._engine is self and view._slot in written:
+                view.detach()
 
     def read_slot(self, key: str, slot: int) -> np.ndarray:
         """State key ``key`` (of ``STATE_KEYS``) of the particles in ``slot``, float64 on the host."""

@@ -5,8 +5,8 @@ affine momentum. Units are SI: positions [m], velocities [m/s], masses [kg],
 stresses [Pa], impulses [N s]. The domain is the box [0, cells * dx]^d.
 
 Particle state lives in *slots*: ``x[slot, p]`` etc. A forward-only engine
-uses three slots and one grid: a step alternates between the two slots its
-start is not in, so the state it started from stays for a redo. An engine
+uses four slots and one grid: a step alternates between the two slots that
+neither it nor the last step started from (``cosim.engines.mpm``). An engine
 built with ``requires_grad`` keeps ``substeps + 1`` slots and one grid (and
 stress scratch) per substep, so one macro step is all resident for the adjoint
 (``cosim.engines.mpm_adjoint``), which never re-runs P2G.
@@ -95,7 +95,7 @@ class MPMKernels:
         self.ranges = [(int(starts[i]), int(starts[i + 1])) for i in range(len(bodies))]
         self.materials = [MATERIALS[b.material]() for b in bodies]
         grad = config.requires_grad
-        self.n_slots = config.grad_substeps + 1 if grad else 3
+        self.n_slots = config.grad_substeps + 1 if grad else 4
 
         self.x = ti.Vector.field(d, float, shape=(self.n_slots, n), needs_grad=grad)
         self.v = ti.Vector.field(d, float, shape=(self.n_slots, n), needs_grad=grad)

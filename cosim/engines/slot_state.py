@@ -2,9 +2,10 @@
 
 A forward-only MPM step hands out its states (the record's state before, the outputs' state after) as
 ``SlotState``: a read-only mapping of the state keys (x, v, C, F) that reads a key from its particle slot
-on first access, as float64 (N, d) or (N, d, d), and caches it. The engine keeps a slot untouched until a
-later step writes it (``MPMEngine`` rotates three slots), so a key can be read until then; after that,
-reading it raises instead of returning another step's numbers.
+on first access, as float64 (N, d) or (N, d, d), and caches it. Before the engine overwrites a slot it
+``detach``es the views of it that are still referenced (reads their remaining keys), so a view holds its
+step's numbers for as long as anyone keeps it; the coupled loop drops its views before the engine
+overwrites them (``MPMEngine`` rotates four slots), so nothing is read that nobody asked for.
 """
 
 from collections.abc import Iterator, Mapping
@@ -19,21 +20,20 @@ class SlotState(Mapping):
 
     def __init__(self, engine, slot: int):
         self._engine, self._slot = engine, slot
-        self._version = engine.slot_version(slot)
         self._read: dict[str, np.ndarray] = {}
 
     def __getitem__(self, key: str) -> np.ndarray:
         if key not in self._read:
             if key not in STATE_KEYS:
                 raise KeyError(key)
-            if self._engine.slot_version(self._slot) != self._version:
-                raise RuntimeError(
-                    f"MPM state key '{key}' read after the engine overwrote those particles: a forward step's "
-                    "record.state lasts until the next step, its outputs' state until the one after; read the "
-                    "keys needed (or dict(state)) before"
-                )
             self._read[key] = self._engine.read_slot(key, self._slot)
         return self._read[key]
+
+    def detach(self) -> None:
+        """Read every key not read yet: the engine is about to overwrite the slot."""
+        for key in STATE_KEYS:
+            self[key]
+        self._engine = None
 
     def __iter__(self) -> Iterator[str]:
         return iter(STATE_KEYS)
