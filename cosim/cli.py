@@ -138,6 +138,7 @@ def cmd_gradcheck(args) -> int:
     print(
         f"gradcheck {scene.name}: {steps} steps x {sim.grad_substeps} substeps, {scene.precision}, loss {scene.loss.type}"
     )
+    print(obj.memory_estimate().describe(), flush=True)
     results = check_gradients(
         obj.evaluate, params, names, obj.natural_scales(), args.directions or scene.gradient.directions
     )

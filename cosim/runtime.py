@@ -19,6 +19,11 @@ default); ``COSIM_TAICHI_CACHE=DIR`` puts it elsewhere (a shared disk on a clust
 folder in CI). Both options are chosen by arch in ``init_options``; what the engines choose by
 arch is in ``cosim.engines.arch``.
 
+Gradients in float32 always compile with advanced optimisation: without it Taichi 1.7.4's
+reverse mode returns wrong adjoints in float32 (zero or NaN through ``ti.max``, ``ti.min``,
+``ti.select`` and branches: measured on one-line kernels, float64 and the optimised build
+are right), which made every dL/dF of a plastic body NaN.
+
 ``arch: cuda`` on a machine without a CUDA GPU is an error (Taichi would fall back to the CPU
 with a warning, and a run meant for a GPU would crawl without saying why).
 """
@@ -54,16 +59,19 @@ def taichi_precision(precision: str):
     return {"float32": ti.f32, "float64": ti.f64}[precision]
 
 
-def ensure_taichi(arch: str = "cpu", precision: str = "float64") -> None:
-    """Initialise Taichi for ``arch`` ('cpu' or 'cuda') and ``precision``.
+def ensure_taichi(arch: str = "cpu", precision: str = "float64", gradients: bool = False) -> None:
+    """Initialise Taichi for ``arch`` ('cpu' or 'cuda') and ``precision``; ``gradients`` in float32
+    needs advanced optimisation (module docstring).
 
-    A no-op when Taichi already runs with the same settings. An ``InputError`` when the arch is a
-    GPU's and Taichi finds none (it would fall back to the CPU).
+    A no-op when Taichi already runs with the same settings (or with optimisation where none is
+    needed). An ``InputError`` when the arch is a GPU's and Taichi finds none (it would fall back to
+    the CPU).
     """
     global _current
-    key = (arch, precision, _optimize)
-    if _current == key:
-        return
+    optimize = _optimize or (gradients and precision == "float32")
+    if _current is not None and _current[:2] == (arch, precision) and _current[2] >= optimize:
+        return  # an optimised start-up serves a request without: re-initialising would drop every field
+    key = (arch, precision, optimize)
     import taichi as ti
 
     if _current is not None:
@@ -77,7 +85,7 @@ def ensure_taichi(arch: str = "cpu", precision: str = "float64") -> None:
         debug=debug,
         log_level=ti.WARN,
         random_seed=0,
-        advanced_optimization=_optimize,
+        advanced_optimization=optimize,
         **init_options(arch),
     )
     from cosim.engines.arch import CPU_ARCHES, running_arch

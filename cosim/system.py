@@ -94,7 +94,18 @@ class StepRecord:
 
     @property
     def nbytes(self) -> int:
-        return self.mpm.nbytes
+        """Host memory the record holds [bytes]: the MPM's checkpoint, impulses and boundaries, and the
+        manipulator engines' records."""
+        return self.mpm.nbytes + sum(getattr(r, "nbytes", 0) for r in self.engines.values())
+
+    @property
+    def checkpoint(self) -> dict[str, np.ndarray] | None:
+        """The MPM state before the step, or None when released (the engines' own states are always held)."""
+        return self.mpm.state
+
+    def keep_checkpoint(self, state: dict[str, np.ndarray] | None) -> None:
+        """Hold the MPM state before the step (in the engine's precision), or release it (None)."""
+        self.mpm.keep_checkpoint(state)
 
 
 class CoupledSystem:
@@ -294,6 +305,14 @@ class CoupledSystem:
                 on_step(n + 1)
 
     # ------------------------------------------------------------ reverse
+    def restore_checkpoints(self, records: list[StepRecord]) -> None:
+        """Recompute the MPM checkpoints of ``records[1:]`` from that of ``records[0]`` by replaying the MPM
+        with the steps' recorded boundaries and impulses (the manipulators need no replay: their records
+        hold their states). The tape's ``checkpoint_every`` > 1 relies on it."""
+        after = self.mpm.replay(records[0].mpm.state, [r.mpm for r in records[:-1]])
+        for record, state in zip(records[1:], after):
+            record.keep_checkpoint(state)
+
     def vjp(self, record: StepRecord, grad: dict[str, dict[str, np.ndarray]]) -> dict:
         """Vector-Jacobian product of one recorded macro step (the paper's backward equations).
 

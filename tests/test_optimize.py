@@ -95,13 +95,20 @@ def test_sgd_with_momentum_lowers_the_loss(steering):
 def test_a_non_finite_adjoint_names_its_step_engine_and_quantity():
     """The backward pass stops at the last macro step whose vjp returned NaN, naming it."""
 
+    class Step:  # the record protocol the tape needs: a checkpoint it may keep or release
+        def __init__(self, n: int):
+            self.n, self.checkpoint = n, "state"
+
+        def keep_checkpoint(self, state) -> None:
+            self.checkpoint = state
+
     def vjp(record, grad):
-        value = np.nan if record == 2 else 1.0
+        value = np.nan if record.n == 2 else 1.0
         return {"state": {"mpm": {"x": np.full(3, value)}}, "action": {}, "material": {}, "impulse": None}
 
     tape = Tape()
     for n in range(4):
-        tape.push(n)
+        tape.push(Step(n))
     with pytest.raises(SimulationError, match=r"dL/d\(mpm.x\) is not finite at macro step 2"):
         tape.backward(vjp, {"mpm": {"x": np.zeros(3)}})
 

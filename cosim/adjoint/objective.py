@@ -22,10 +22,12 @@ class Objective:
     """L(params) for one coupled system built with ``requires_grad``.
 
     ``loss(final_state) -> (value, dL/dstate)`` reads any engine's state by name
-    (default: the scene's loss, ``cosim.losses.Loss``).
+    (default: the scene's loss, ``cosim.losses.Loss``). ``checkpoint_every``: the tape keeps
+    the MPM state of every k-th macro step and recomputes the rest (default: the scene's
+    ``gradient.checkpoint_every``, else 1).
     """
 
-    def __init__(self, system, loss: Callable | None = None):
+    def __init__(self, system, loss: Callable | None = None, checkpoint_every: int | None = None):
         self.system = system
         self.initial_state = system.state()
         engines = {"mpm": system.mpm, **system.engines}
@@ -44,7 +46,17 @@ class Objective:
 
             loss = Loss.for_system(system)
         self.loss = loss
-        self.tape = Tape()
+        if checkpoint_every is None:
+            scene = getattr(system, "scene", None)
+            checkpoint_every = scene.gradient.checkpoint_every if scene is not None else 1
+        self.tape = Tape(checkpoint_every)
+
+    def memory_estimate(self):
+        """What a gradient rollout will hold (``cosim.adjoint.memory.MemoryEstimate``)."""
+        from cosim.adjoint.memory import estimate_memory
+
+        running = getattr(self.loss, "has_running", False)
+        return estimate_memory(self.system, self.system.steps, self.tape.checkpoint_every, running)
 
     def select(self, names: list[str]) -> list[str]:
         """The declared parameters a scene's ``params`` list asks for: named ``p`` or "<engine>.p"."""
@@ -136,7 +148,9 @@ class Objective:
         value += sum(v for v, _g in running)
         if not grad:
             return value, None
-        g = self.tape.backward(self.system.vjp, dstate, [g for _v, g in running] or None)
+        g = self.tape.backward(
+            self.system.vjp, dstate, [g for _v, g in running] or None, self.system.restore_checkpoints
+        )
         grads = {}
         for name, param_value in params.items():
             p = self.parameters[name]

@@ -74,6 +74,7 @@ def optimize_scene(
             f"optimize {scene.name}: {', '.join(names)}; loss {' + '.join(obj.loss.values)}; {sim.steps} steps; "
             f"{method} lr {lr:g} x scale" + ("; resuming" if resume else "")
         )
+        print(obj.memory_estimate().describe(), flush=True)
     bar = tqdm(total=iterations, desc="optimize", unit="it", disable=not progress)
 
     def on_iteration(row: dict, history: list[dict]) -> None:

@@ -9,6 +9,11 @@ that step's substeps from its checkpoint), which returns dL/dstate_before per en
 plus the gradients of the step's inputs and parameters. Memory is one MPM state
 per macro step on the host plus one macro step of substeps in the engine:
 O(S N + K N), never O(S K N).
+
+With ``checkpoint_every`` k > 1 the tape keeps the MPM state of every k-th step only
+(and of the last, which the engine still holds); the backward pass recomputes the
+others one segment of k steps at a time (``CoupledSystem.restore_checkpoints``):
+O(S N / k + k N + K N) memory for about one more MPM forward pass.
 """
 
 from __future__ import annotations
@@ -30,13 +35,26 @@ class Gradients:
 
 
 class Tape:
-    """Records macro steps forward; ``backward`` replays them in reverse."""
+    """Records macro steps forward; ``backward`` replays them in reverse. Keeps the MPM checkpoint
+    of every ``checkpoint_every``-th step (``backward`` then needs ``restore``)."""
 
-    def __init__(self) -> None:
+    def __init__(self, checkpoint_every: int = 1) -> None:
+        if checkpoint_every < 1:
+            raise ValueError(f"checkpoint_every must be at least 1 (got {checkpoint_every})")
+        self.checkpoint_every = checkpoint_every
         self.records: list = []
 
     def push(self, record) -> None:
+        """Append a step; the previous one's checkpoint is released unless it is a k-th one (the last
+        step keeps its own: the engine still holds that step, so the backward starts without a replay)."""
+        if self.records:
+            self._release(len(self.records) - 1)
+        record.keep_checkpoint(record.checkpoint)  # in the engine's precision
         self.records.append(record)
+
+    def _release(self, n: int) -> None:
+        if n % self.checkpoint_every:
+            self.records[n].keep_checkpoint(None)
 
     def clear(self) -> None:
         self.records.clear()
@@ -51,6 +69,7 @@ class Tape:
         step_vjp: Callable,
         grad_final: dict[str, dict[str, np.ndarray]],
         running: list[dict | None] | None = None,
+        restore: Callable[[list], None] | None = None,
     ) -> Gradients:
         """Chain rule over the recorded steps: dL/ds^n = dL/ds^{n+1} ds^{n+1}/ds^n + dl_n/ds^n.
 
@@ -58,6 +77,8 @@ class Tape:
         returns "state" (per engine), "impulse", "action" (per engine) and "material".
         ``running[n]`` (n = 0..S) is the gradient of the loss terms read at state n (running
         terms; None where there are none): it joins the adjoint as the pass reaches state n.
+        ``restore(records)`` refills the checkpoints of ``records[1:]`` from ``records[0]``'s
+        (``CoupledSystem.restore_checkpoints``); needed with ``checkpoint_every`` > 1.
         """
         running = running or [None] * (len(self.records) + 1)
         if len(running) != len(self.records) + 1:
@@ -68,7 +89,10 @@ class Tape:
         actions: dict[str, list] = {}
         material: dict[str, dict[str, np.ndarray]] = {}
         for n in reversed(range(n_steps)):
+            if self.records[n].checkpoint is None:
+                self._restore_segment(n, restore)
             out = step_vjp(self.records[n], grad_state)
+            self._release(n)
             _check_finite(out, n)
             grad_state = _plus(out["state"], running[n])
             impulses[n] = out.get("impulse")
@@ -79,6 +103,13 @@ class Tape:
                 for key, g in grads.items():
                     totals[key] = totals.get(key, 0.0) + g
         return Gradients(state0=grad_state, impulse=impulses, action=actions, material=material)
+
+    def _restore_segment(self, n: int, restore: Callable[[list], None] | None) -> None:
+        """Recompute the checkpoints of the steps after the last one kept before step n, up to n."""
+        if restore is None:
+            raise ValueError("the tape keeps every k-th checkpoint only: backward needs restore=")
+        first = n - n % self.checkpoint_every
+        restore(self.records[first : n + 1])
 
 
 def _plus(grad: dict[str, dict[str, np.ndarray]], extra: dict | None) -> dict[str, dict[str, np.ndarray]]:

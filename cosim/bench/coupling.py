@@ -107,7 +107,7 @@ def _backward(scene, steps: int, repeat: int) -> float:
         forward = time.perf_counter() - t
         _, dstate = obj.loss(final)
         t = time.perf_counter()
-        obj.tape.backward(obj.system.vjp, dstate)
+        obj.tape.backward(obj.system.vjp, dstate, restore=obj.system.restore_checkpoints)
         ratios.append((time.perf_counter() - t) / forward)
     return float(np.median(ratios))
 

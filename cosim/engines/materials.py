@@ -50,6 +50,17 @@ def inverse_transpose_3(R):
 
 
 @ti.func
+def cofactor(F):
+    """det(F) F^-T (2D or 3D): the derivative of det(F) with respect to F."""
+    out = F
+    if ti.static(F.n == 2):
+        out = ti.Matrix([[F[1, 1], -F[1, 0]], [-F[0, 1], F[0, 0]]])
+    else:
+        out = F.determinant() * inverse_transpose_3(F)
+    return out
+
+
+@ti.func
 def polar_rotation(F):
     """Rotation R of the polar decomposition F = R S (S symmetric).
 
@@ -76,6 +87,28 @@ def polar_rotation(F):
 
 
 @ti.func
+def polar_rotation_vjp(F, R, R_bar):
+    """dL/dF through R = polar_rotation(F), given dL/dR: the derivative of the exact polar
+    decomposition (the Newton iterate equals it to round-off), one small solve instead of the
+    reverse of the iterations. With F = R S, dR = R [w]x where (tr(S) I - S) w = vee(R^T dF - dF^T R)
+    (in 2D, tr(S) w = (R^T dF - dF^T R)_10); hence dL/dF = R [c]x, (tr(S) I - S) c = vee(M - M^T),
+    M = R^T R_bar, vee(A) = (A_21, A_02, A_10)."""
+    S = R.transpose() @ F
+    S = 0.5 * (S + S.transpose())
+    M = R.transpose() @ R_bar
+    F_bar = R_bar
+    if ti.static(F.n == 2):
+        c = (M[1, 0] - M[0, 1]) / S.trace()
+        F_bar = R @ ti.Matrix([[0.0, -c], [c, 0.0]])
+    else:
+        m = ti.Vector([M[2, 1] - M[1, 2], M[0, 2] - M[2, 0], M[1, 0] - M[0, 1]])
+        K = S.trace() * ti.Matrix.identity(float, 3) - S  # symmetric: its inverse is its inverse transpose
+        c = inverse_transpose_3(K) @ m
+        F_bar = R @ ti.Matrix([[0.0, -c[2], c[1]], [c[2], 0.0, -c[0]], [-c[1], c[0], 0.0]])
+    return F_bar
+
+
+@ti.func
 def corotated_kirchhoff(F, mu, lam):
     """Fixed corotated stress: tau = 2 mu (F - R) F^T + lam (J - 1) J I."""
     R = polar_rotation(F)
@@ -84,24 +117,50 @@ def corotated_kirchhoff(F, mu, lam):
     return 2.0 * mu * (F - R) @ F.transpose() + lam * (J - 1.0) * J * eye
 
 
+@ti.func
+def corotated_kirchhoff_vjp(F, mu, lam, tau_bar):
+    """(dL/dF, dL/dmu, dL/dlam) of tau = corotated_kirchhoff(F, mu, lam), given dL/dtau."""
+    R = polar_rotation(F)
+    J = F.determinant()
+    strain_part = F - R
+    F_bar = 2.0 * mu * (tau_bar @ F + tau_bar.transpose() @ strain_part)
+    F_bar += polar_rotation_vjp(F, R, -2.0 * mu * tau_bar @ F)
+    pressure_bar = tau_bar.trace()
+    F_bar += (pressure_bar * lam * (2.0 * J - 1.0)) * cofactor(F)
+    mu_bar = 2.0 * (tau_bar * (strain_part @ F.transpose())).sum()
+    return F_bar, mu_bar, pressure_bar * (J - 1.0) * J
+
+
 @ti.data_oriented
 class Elastic:
     """Fixed corotated hyperelasticity (Stomakhin et al. 2012)."""
 
     name = "elastic"
+    project_uses_lame = False  # whether ``project`` depends on mu or lam (its adjoint then reaches E and nu)
 
     @ti.func
     def kirchhoff(self, F, C, mu, lam, eta):
         return corotated_kirchhoff(F, mu, lam)
 
     @ti.func
+    def kirchhoff_vjp(self, F, C, mu, lam, eta, tau_bar):
+        """(dL/dF, dL/dC, dL/dmu, dL/dlam) of ``kirchhoff``, given dL/dtau."""
+        F_bar, mu_bar, lam_bar = corotated_kirchhoff_vjp(F, mu, lam, tau_bar)
+        return F_bar, ti.Matrix.zero(float, F.n, F.n), mu_bar, lam_bar
+
+    @ti.func
     def project(self, F, mu, lam, yield_stress):
         return F
 
+    @ti.func
+    def project_vjp(self, F, mu, lam, yield_stress, out_bar):
+        """(dL/dF, dL/dmu, dL/dlam) of ``project``, given dL/d(its output)."""
+        return out_bar, 0.0, 0.0
+
 
 @ti.data_oriented
-class Plastic:
-    """Elasto-plastic: corotated elasticity with a von Mises radial return.
+class Plastic(Elastic):
+    """Elasto-plastic: corotated elasticity (``Elastic``'s stress) with a von Mises radial return.
 
     The strain measure is the corotated (Biot) strain e = S - I with F = R S.
     Its deviatoric part is scaled back onto the yield surface
@@ -111,10 +170,7 @@ class Plastic:
     """
 
     name = "plastic"
-
-    @ti.func
-    def kirchhoff(self, F, C, mu, lam, eta):
-        return corotated_kirchhoff(F, mu, lam)
+    project_uses_lame = True  # the yield limit scales with 1 / mu
 
     @ti.func
     def project(self, F, mu, lam, yield_stress):
@@ -131,6 +187,33 @@ class Plastic:
         scale = limit / ti.sqrt(ti.max(norm2, limit * limit))
         return R @ (eye + mean * eye + scale * dev)
 
+    @ti.func
+    def project_vjp(self, F, mu, lam, yield_stress, out_bar):
+        """(dL/dF, dL/dmu, dL/dlam) of ``project`` (out = R Y, Y = (1 + mean) I + scale dev), given dL/dout."""
+        R = polar_rotation(F)
+        P = R.transpose() @ F
+        S = 0.5 * (P + P.transpose())
+        eye = ti.Matrix.identity(float, F.n)
+        strain = S - eye
+        mean = strain.trace() / F.n
+        dev = strain - mean * eye
+        limit = ti.sqrt(2.0 / 3.0) * yield_stress / (2.0 * mu)
+        norm2 = (dev * dev).sum()
+        scale = 1.0
+        dev_bar = ti.Matrix.zero(float, F.n, F.n)
+        mu_bar = 0.0
+        Y_bar = R.transpose() @ out_bar
+        scale_bar = (Y_bar * dev).sum()
+        if norm2 > limit * limit:  # on the yield surface: scale = limit / |dev|
+            scale = limit / ti.sqrt(norm2)
+            dev_bar = (-scale * scale_bar / norm2) * dev  # d scale / d dev = -scale dev / |dev|^2
+            mu_bar = -scale_bar * scale / mu  # d limit / d mu = -limit / mu
+        dev_bar += scale * Y_bar
+        strain_bar = dev_bar + ((Y_bar.trace() - dev_bar.trace()) / F.n) * eye
+        P_bar = 0.5 * (strain_bar + strain_bar.transpose())
+        R_bar = out_bar @ (eye + mean * eye + scale * dev).transpose() + F @ P_bar.transpose()
+        return R @ P_bar + polar_rotation_vjp(F, R, R_bar), mu_bar, 0.0
+
 
 @ti.data_oriented
 class Liquid:
@@ -143,6 +226,7 @@ class Liquid:
     """
 
     name = "liquid"
+    project_uses_lame = False
 
     @ti.func
     def kirchhoff(self, F, C, mu, lam, eta):
@@ -151,9 +235,25 @@ class Liquid:
         return bulk * J * (J - 1.0) * ti.Matrix.identity(float, F.n) + J * eta * (C + C.transpose())
 
     @ti.func
+    def kirchhoff_vjp(self, F, C, mu, lam, eta, tau_bar):
+        """(dL/dF, dL/dC, dL/dmu, dL/dlam) of ``kirchhoff``, given dL/dtau."""
+        J = F.determinant()
+        bulk = lam + 2.0 * mu / F.n
+        pressure_bar = tau_bar.trace()
+        J_bar = pressure_bar * bulk * (2.0 * J - 1.0) + eta * (tau_bar * (C + C.transpose())).sum()
+        bulk_bar = pressure_bar * J * (J - 1.0)
+        return J_bar * cofactor(F), J * eta * (tau_bar + tau_bar.transpose()), 2.0 * bulk_bar / F.n, bulk_bar
+
+    @ti.func
     def project(self, F, mu, lam, yield_stress):
         J = F.determinant()
         return J ** (1.0 / F.n) * ti.Matrix.identity(float, F.n)
+
+    @ti.func
+    def project_vjp(self, F, mu, lam, yield_stress, out_bar):
+        """(dL/dF, dL/dmu, dL/dlam) of ``project``, given dL/d(its output): d J^(1/d) / dF = J^(1/d - 1) cof(F) / d."""
+        J = F.determinant()
+        return (out_bar.trace() * J ** (1.0 / F.n - 1.0) / F.n) * cofactor(F), 0.0, 0.0
 
 
 MATERIALS = {cls.name: cls for cls in (Elastic, Plastic, Liquid)}

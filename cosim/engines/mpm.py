@@ -31,16 +31,22 @@ __all__ = ["STATE_KEYS", "MPMConfig", "MPMEngine", "MPMRecord", "ParticleBody"]
 class MPMRecord:
     """What ``vjp`` needs about one macro step."""
 
-    state: dict[str, np.ndarray]  # before the step
+    state: dict[str, np.ndarray] | None  # before the step; None while the tape holds no checkpoint of it
     dt: float  # [s] substep
     substeps: int
     impulse: np.ndarray | None = None  # (N, d) [N s]
     boundaries: dict = field(default_factory=dict)  # {source: BoundaryStates}
     token: int = -1  # the engine's id of this forward step (lets vjp skip a recompute)
+    precision: type = np.float64  # the engine's, in which a kept checkpoint is stored (exactly: it was read from it)
+
+    def keep_checkpoint(self, state: dict[str, np.ndarray] | None) -> None:
+        """Hold ``state`` (the state before the step) in the engine's precision, or release it (None):
+        the tape then recomputes it from an earlier checkpoint (``MPMEngine.replay``)."""
+        self.state = None if state is None else {k: v.astype(self.precision, copy=False) for k, v in state.items()}
 
     @property
     def nbytes(self) -> int:
-        arrays = list(self.state.values()) + ([] if self.impulse is None else [self.impulse])
+        arrays = list((self.state or {}).values()) + ([] if self.impulse is None else [self.impulse])
         return sum(a.nbytes for a in arrays) + sum(_nbytes(b) for b in self.boundaries.values())
 
 
@@ -180,9 +186,8 @@ class MPMEngine(MPMAdjointKernels):
         if missing:
             raise ValueError(f"MPM step: no boundary states for sources {missing}")
         before = self._known_state if self._known_state is not None else self._snapshot()
-        record = MPMRecord(before, dt, K, inputs.get("impulse"), boundaries)
-        for name, source in self.boundaries.items():
-            source.write(boundaries[name])
+        record = MPMRecord(before, dt, K, inputs.get("impulse"), boundaries, precision=self.real)
+        self._write_boundaries(boundaries)
         record.token = self.advance(dt, K, record.impulse)
         reactions = {name: source.reactions(K) for name, source in self.boundaries.items()}
         self._known_state = self._snapshot()
@@ -234,8 +239,7 @@ class MPMEngine(MPMAdjointKernels):
         share = 1.0 / K
         self._set_control(record.impulse)
         self._forget()  # a recompute moves the slots away from the forward state
-        for name, source in self.boundaries.items():  # the step's boundary, for its backward (and recompute)
-            source.write(record.boundaries[name])
+        self._write_boundaries(record.boundaries)  # the step's boundary, for its backward (and recompute)
         if record.token != self._resident:
             self.set_state(record.state)
             for s in range(K):
@@ -260,6 +264,22 @@ class MPMEngine(MPMAdjointKernels):
         if self.control is not None:
             out["impulse"] = self.control.grad.to_numpy().astype(np.float64)
         return out
+
+    def replay(self, start: dict[str, np.ndarray], records: list[MPMRecord]) -> list[dict[str, np.ndarray]]:
+        """The state after each of ``records``' steps, recomputed from ``start`` (the state before the
+        first) with each step's recorded dt, substeps, impulse and boundaries: the forward's states, bit
+        for bit with the serial scatter (to round-off with atomics). Leaves the engine after the last."""
+        self.set_state(start)
+        after = []
+        for r in records:
+            self._write_boundaries(r.boundaries)
+            self.advance(r.dt, r.substeps, r.impulse)
+            after.append(self.state())
+        return after
+
+    def _write_boundaries(self, boundaries: dict) -> None:
+        for name, source in self.boundaries.items():
+            source.write(boundaries[name])
 
     def _zero_grad(self) -> None:
         fields = [self.x, self.v, self.C, self.F, self.grid_mom, self.grid_m, self.grid_v, self.affine, self.E, self.nu]

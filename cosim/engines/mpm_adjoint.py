@@ -1,11 +1,15 @@
-"""Hand-written adjoints of the MPM's particle-grid transfers (P2G scatter, G2P gather).
+"""Hand-written adjoints of the MPM's particle kernels (P2G scatter, G2P gather, stress, advection).
 
 Taichi's reverse-mode autodiff of the transfer kernels unrolls the 3^d stencil
 into a large reverse program: in 3D the reverse P2G and G2P alone compiled for
 about 50 s (measured). The adjoints here are written out instead and loop over
 the stencil at run time, so each compiles in under half a second and runs as
-fast as an unrolled one (measured; docs/benchmarks.md). The per-particle stress,
-the grid update and the return mapping keep Taichi's autodiff (no stencil there).
+fast as an unrolled one (measured; docs/benchmarks.md). The per-particle stress
+and the advection with its return mapping are written out too (``_stress_adjoint``,
+``_advect_adjoint``, with the materials' ``kirchhoff_vjp`` and ``project_vjp``): the
+3D polar decomposition's derivative is one 3x3 solve, where Taichi's reverse mode
+replayed its Newton iterations. Only the grid update (and the contact hooks' own
+rules) keep Taichi's autodiff.
 
 Notation for one particle at x with stencil nodes i: weights w_i(x) (products of
 per-axis quadratic B-splines), offsets dpos_i = (i - x / dx) dx. Both depend on x:
@@ -69,13 +73,14 @@ class MPMAdjointKernels(MPMKernels):
                 g_affine += weight * g_node.outer_product(dpos)
                 g_x += grad_w * (g_node.dot(mom + affine @ dpos) + m_p * g_mass)
                 g_x -= weight * (affine.transpose() @ g_node)
-            self.v.grad[src, p] += m_p * g_mom
+            # each particle owns these adjoint entries: plain adds, not atomics
+            self.v.grad[src, p] = self.v.grad[src, p] + m_p * g_mom
             if ti.static(self.cfg.has_controls):
-                self.control.grad[p] += control_share * g_mom
+                self.control.grad[p] = self.control.grad[p] + control_share * g_mom
             for hook in ti.static(self.particle_hooks):
-                hook.output.grad[g, p] += g_mom
-            self.affine.grad[g, p] += g_affine
-            self.x.grad[src, p] += g_x
+                hook.output.grad[g, p] = hook.output.grad[g, p] + g_mom
+            self.affine.grad[g, p] = self.affine.grad[g, p] + g_affine
+            self.x.grad[src, p] = self.x.grad[src, p] + g_x
 
     @ti.func
     def velocity_grad(self, g, I, g_v):
@@ -115,11 +120,58 @@ class MPMAdjointKernels(MPMKernels):
             source.velocity_grad(g, I, self.gathered_grad[I])
             self.gathered_grad[I] = ti.Vector.zero(float, self.dim)
 
+    @ti.kernel
+    def _stress_adjoint(
+        self, mat: ti.template(), b: ti.i32, start: ti.i32, end: ti.i32, src: ti.i32, g: ti.i32, dt: float
+    ):
+        """Adjoint of ``_stress`` (affine = s tau(F, C, mu, lam) + m_p C, s = -dt V0 4 / dx^2): from
+        dL/d(affine) to dL/dF, dL/dC and the body's dL/dE, dL/dnu (through the Lame parameters)."""
+        for p in range(start, end):  # each particle owns its adjoint entries: plain adds, not atomics
+            mu, lam = self._lame(b)
+            m_p, vol = self.p_mass[b], self.p_vol[b]
+            affine_bar = self.affine.grad[g, p]
+            tau_bar = (-dt * vol * 4.0 * self.inv_dx * self.inv_dx) * affine_bar
+            F_bar, C_bar, mu_bar, lam_bar = mat.kirchhoff_vjp(
+                self.F[src, p], self.C[src, p], mu, lam, self.viscosity[b], tau_bar
+            )
+            self.F.grad[src, p] = self.F.grad[src, p] + F_bar
+            self.C.grad[src, p] = self.C.grad[src, p] + C_bar + m_p * affine_bar
+            self._lame_grad(b, mu_bar, lam_bar)
+
+    @ti.kernel
+    def _advect_adjoint(
+        self, mat: ti.template(), b: ti.i32, start: ti.i32, end: ti.i32, src: ti.i32, dst: ti.i32, dt: float
+    ):
+        """Adjoint of ``_advect`` (x' = x + dt v', F' = project((I + dt C') F)): from dL/dx', dL/dF' to
+        dL/dx, dL/dv', dL/dC', dL/dF and the body's dL/dE, dL/dnu (a plastic body's yield limit
+        depends on mu)."""
+        for p in range(start, end):  # each particle owns its adjoint entries: plain adds, not atomics
+            mu, lam = self._lame(b)
+            x_bar = self.x.grad[dst, p]
+            self.x.grad[src, p] = self.x.grad[src, p] + x_bar
+            self.v.grad[dst, p] = self.v.grad[dst, p] + dt * x_bar
+            F = self.F[src, p]
+            step = ti.Matrix.identity(float, self.dim) + dt * self.C[dst, p]
+            trial_bar, mu_bar, lam_bar = mat.project_vjp(step @ F, mu, lam, self.yield_stress[b], self.F.grad[dst, p])
+            self.C.grad[dst, p] = self.C.grad[dst, p] + dt * trial_bar @ F.transpose()
+            self.F.grad[src, p] = self.F.grad[src, p] + step.transpose() @ trial_bar
+            if ti.static(mat.project_uses_lame):  # else a zero added to E and nu by every particle
+                self._lame_grad(b, mu_bar, lam_bar)
+
+    @ti.func
+    def _lame_grad(self, b, mu_bar, lam_bar):
+        """Add dL/dE and dL/dnu of body b from dL/dmu and dL/dlam: mu = E / (2 (1 + nu)), lam = E nu / q,
+        q = (1 + nu)(1 - 2 nu)."""
+        E, nu = self.E[b], self.nu[b]
+        q = (1.0 + nu) * (1.0 - 2.0 * nu)
+        self.E.grad[b] += mu_bar / (2.0 * (1.0 + nu)) + lam_bar * nu / q
+        self.nu.grad[b] += -mu_bar * E / (2.0 * (1.0 + nu) ** 2) + lam_bar * E * (1.0 + 2.0 * nu * nu) / (q * q)
+
     def _substep_grad(self, s: int, dt: float, control_share: float) -> None:
         """Adjoint of substep s (slots s -> s + 1); its grid and stress copies are still held."""
         for b in reversed(range(len(self.bodies))):
             lo, hi = self.ranges[b]
-            self._advect.grad(self.materials[b], b, lo, hi, s, s + 1, dt)
+            self._advect_adjoint(self.materials[b], b, lo, hi, s, s + 1, dt)
         self._g2p_adjoint(self._serial, s, s + 1, s, self._grid_out)
         self._gathered_grad_to_source(s, self._grid_out)
         for hook in reversed(self.grid_hooks):
@@ -128,7 +180,7 @@ class MPMAdjointKernels(MPMKernels):
         for b in reversed(range(len(self.bodies))):
             lo, hi = self.ranges[b]
             self._p2g_adjoint(b, lo, hi, s, s, control_share)
-            self._stress.grad(self.materials[b], b, lo, hi, s, s, dt)
+            self._stress_adjoint(self.materials[b], b, lo, hi, s, s, dt)
         for hook in reversed(self.particle_hooks):
             hook.apply_grad(s, s, s, dt)
         for prepare_grad in reversed(self.substep_preparer_grads):

@@ -95,6 +95,7 @@ class MPMKernels:
         self.ranges = [(int(starts[i]), int(starts[i + 1])) for i in range(len(bodies))]
         self.materials = [MATERIALS[b.material]() for b in bodies]
         grad = config.requires_grad
+        _check_gradient_build(grad)
         self.n_slots = config.grad_substeps + 1 if grad else 4
 
         self.x = ti.Vector.field(d, float, shape=(self.n_slots, n), needs_grad=grad)
@@ -400,3 +401,15 @@ class MPMKernels:
         self.pre_coupling(src, s, dt, control_share)
         self.coupling(src, s, dt)
         self.post_coupling(src, dst, dt, s)
+
+
+def _check_gradient_build(requires_grad: bool) -> None:
+    """Taichi 1.7.4's float32 reverse mode is wrong without advanced optimisation (zero or NaN
+    adjoints through max, min, select and branches; ``cosim.runtime``): refuse to build on it."""
+    cfg = ti.lang.impl.current_cfg()
+    if requires_grad and cfg.default_fp == ti.f32 and not cfg.advanced_optimization:
+        raise RuntimeError(
+            "float32 gradients need Taichi started with advanced_optimization=True (without it Taichi 1.7.4 "
+            "returns wrong float32 adjoints): build with cosim.build_system, or call "
+            "cosim.runtime.ensure_taichi(arch, 'float32', gradients=True) first, or use float64"
+        )

@@ -103,7 +103,7 @@ def build_system(scene: Scene, requires_grad: bool = False, steps: int | None = 
     """The coupled system of ``scene``; ``requires_grad`` builds gradient buffers and fixes K."""
     from cosim.runtime import ensure_taichi
 
-    ensure_taichi(scene.arch, scene.precision)
+    ensure_taichi(scene.arch, scene.precision, gradients=requires_grad)
     from cosim.engines.mpm import MPMConfig, MPMEngine
 
     steps = steps or scene.steps

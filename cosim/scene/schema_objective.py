@@ -76,6 +76,9 @@ class GradientSpec(Strict):
     # macro steps of the check (default: min(steps, 5)); a scene whose contact starts late sets it so
     # that the check crosses contact
     steps: Annotated[int, Field(ge=1)] | None = None
+    # every gradient run (gradcheck, optimize): the tape keeps the MPM state of every k-th macro step
+    # and recomputes the others in the backward pass: S/k states instead of S, about one more forward
+    checkpoint_every: Annotated[int, Field(ge=1)] = 1
 
 
 class OptimizeSpec(Strict):
