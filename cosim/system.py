@@ -12,7 +12,9 @@ through their contracts (``cosim.engines.contract``)::
 and its reverse (``vjp``; engine-to-engine reactions, a cloth's contact on rigid links, are
 not differentiated). It picks the substep count K from the CFL bound (or checks a
 fixed one) and stops with a ``SimulationError`` naming the step, the body and the
-quantity as soon as a step produces NaN/inf, violates the CFL bound or leaves the grid.
+quantity (and for NaN/inf the substep) as soon as a step produces NaN/inf, violates the CFL
+bound or leaves the grid; the MPM engine checks its particles on the device and hands over
+per-body counts (``MPMEngine.health``), not its state.
 ``rollout`` is the one loop behind ``cosim run``, the objective, gradcheck, optimize and
 the benchmarks. Scenes assemble a system with ``cosim.scene.build_system``.
 """
@@ -231,9 +233,9 @@ class CoupledSystem:
                 outputs, mpm_record = self.mpm.step(
                     {"dt": dt, "substeps": K, "impulse": impulse, "boundaries": boundaries}
                 )
-            after = outputs["state"]
-            self._check_finite(after)
-            cfl, body = self._cfl(after, dt)
+            after, health = outputs["state"], outputs["health"]
+            self._check_finite(health, K)
+            cfl, body = self._cfl(health, dt)
             if cfl <= st.cfl:
                 break
             if fixed or attempt == RETRIES:
@@ -249,7 +251,7 @@ class CoupledSystem:
                 )
             self.mpm.set_state(mpm_record.state)
             K *= 2
-        self._check_domain(after)
+        self._check_domain(health)
         tracked = self.conservation.begin_step(self.step_index, mpm_record.state)  # not a replay
         if tracked and self.step_index == 0 and self.tunnels is not None:
             self.tunnels.reset()
@@ -372,10 +374,6 @@ class CoupledSystem:
     def _timed(self, key: str):
         return _Stopwatch(self.timings, key)
 
-    def _per_body(self, values: np.ndarray):
-        for name, sl in self.slices.items():
-            yield name, values[sl]
-
     def _account_energy(self, record, boundaries: dict, reactions: dict, after: dict[str, np.ndarray]) -> None:
         """The work the boundaries and controls did on the material this step, and the energy check
         (``cosim.conservation``)."""
@@ -410,32 +408,37 @@ class CoupledSystem:
                         + (", or a larger contact.stiffness" if model == "particle" else "")
                     )
 
-    def _check_finite(self, state: dict[str, np.ndarray]) -> None:
+    def _check_finite(self, health: dict, K: int) -> None:
+        """Stop at the first body (in body order) whose particles hold a NaN or inf (``MPMEngine.health``),
+        naming the quantity (the first of v, x, F, C with one) and the substep of K it appeared in."""
         names = {"x": "position", "v": "velocity", "F": "deformation gradient", "C": "affine velocity"}
-        for key in ("v", "x", "F", "C"):
-            for body, vals in self._per_body(state[key]):
-                bad = ~np.isfinite(vals.reshape(len(vals), -1)).all(axis=1)
-                if bad.any():
-                    raise SimulationError(
-                        f"step {self.step_index}: body '{body}': non-finite {names[key]} ({key}) in "
-                        f"{int(bad.sum())} particles; the step is unstable: lower time.frame_dt, use more substeps "
-                        "or a smaller time.cfl, or check the material's E"
-                    )
+        for body, h in health.items():
+            key = next((k for k in ("v", "x", "F", "C") if h.non_finite[k]), None)
+            if key is None:
+                continue
+            first = K - 1 if h.first_bad is None else h.first_bad  # None: in the last advection (mpm_watch)
+            where = "in the state the step started from" if first < 0 else f"first in substep {first} (0-based) of {K}"
+            raise SimulationError(
+                f"step {self.step_index}: body '{body}': non-finite {names[key]} ({key}) in "
+                f"{h.non_finite[key]} particles, {where}; the step is unstable: lower time.frame_dt, use more "
+                "substeps or a smaller time.cfl, or check the material's E"
+            )
 
-    def _cfl(self, state: dict[str, np.ndarray], dt: float) -> tuple[float, str]:
+    def _cfl(self, health: dict, dt: float) -> tuple[float, str]:
+        """The largest CFL number max|v| dt / dx over the bodies and its body."""
         worst, name = 0.0, ""
-        for body, vals in self._per_body(state["v"]):
-            c = float(np.abs(vals).max()) * dt / self.dx
+        for body, h in health.items():
+            c = h.speed * dt / self.dx
             if c > worst:
                 worst, name = c, body
         return worst, name
 
-    def _check_domain(self, state: dict[str, np.ndarray]) -> None:
-        for body, vals in self._per_body(state["x"]):
-            out = np.any((vals < self.dx) | (vals > self.domain - self.dx), axis=1)
-            if out.any():
+    def _check_domain(self, health: dict) -> None:
+        """Stop when a body has particles within a cell of the grid's faces or beyond."""
+        for body, h in health.items():
+            if h.outside:
                 raise SimulationError(
-                    f"step {self.step_index}: body '{body}': {int(out.sum())} particles left the grid domain "
+                    f"step {self.step_index}: body '{body}': {h.outside} particles left the grid domain "
                     f"[0, {self.domain.tolist()}] m; enable walls (mpm.boundary.type) or enlarge mpm.grid"
                 )
 

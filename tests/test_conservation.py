@@ -98,3 +98,21 @@ def test_energy_gained_from_nowhere_stops_the_run_naming_the_body():
     with pytest.raises(SimulationError, match=r"step 19: the energy grew .* body 'block' gained most"):
         for _ in range(10):
             sim.step()
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_the_strain_energy_sees_the_singular_values_numpys_svd_gives(dim):
+    """The corotated energy's |F - R|^2 = sum (sigma_i - 1)^2 (R = U V^T of the SVD) from the closed-form
+    (2D) or eigvalsh (3D) singular values: per matrix it matches numpy's SVD to round-off, for small and
+    large strains, reflections (det F < 0) and a nearly flattened F."""
+    from cosim.diagnostics import singular_values
+
+    rng = np.random.default_rng(dim)
+    F = np.concatenate([np.eye(dim) + s * rng.standard_normal((200, dim, dim)) for s in (1e-4, 0.3, 2.0)])
+    F[:20] *= -1.0
+    F[20:30, 0] *= 1e-6
+    U, _, Vt = np.linalg.svd(F)
+    expected = np.sum((F - U @ Vt) ** 2, axis=(1, 2))
+    got = np.sum((singular_values(F) - 1.0) ** 2, axis=1)
+    np.testing.assert_allclose(got, expected, rtol=1e-9, atol=1e-14)
+    assert abs(got.sum() - expected.sum()) <= 1e-12 * expected.sum()

@@ -76,9 +76,96 @@ def test_nan_is_caught_at_the_step_it_appears_with_body_and_quantity():
         sim.step()
 
 
+def test_nan_is_reported_at_the_substep_it_appears():
+    """A NaN written into one particle's velocity before substep 5 of 8 (a substep hook standing in for a
+    blow-up) spreads through the grid in that substep; the device watch names substep 5 and body 'b', and
+    its count is the host's count of the particles with a non-finite velocity."""
+    bodies = [
+        block() | {"name": "a"},
+        block() | {"name": "b", "shape": {"type": "box", "center": [0.5, 0.2], "size": [0.1, 0.1]}},
+    ]
+    sim = build_system(
+        make_scene(time={"frame_dt": 2e-3, "substeps": 8}, mpm={"grid": {"cells": 32}, "bodies": bodies})
+    )
+    p = sim.slices["b"].start + 3
+
+    def poison(src: int, s: int) -> None:
+        if s == 5:
+            sim.mpm.v[src, p] = [np.nan, 0.0]
+
+    sim.step()
+    sim.mpm.substep_preparers.append(poison)
+    with pytest.raises(SimulationError) as err:
+        sim.step()
+    bad = ~np.isfinite(sim.mpm.state()["v"]).all(axis=1)
+    assert bad[sim.slices["b"]].sum() > 1 and not bad[sim.slices["a"]].any()
+    assert (
+        f"step 1: body 'b': non-finite velocity (v) in {bad.sum()} particles, first in substep 5 (0-based) of 8"
+        in str(err.value)
+    )
+
+
+def test_particles_leaving_the_grid_stop_the_run_with_their_count():
+    """Without walls a block thrown at 5 m/s towards x = 1 m crosses L - dx within a few steps; the device
+    survey's count is the host's count of particles beyond [dx, L - dx], and its largest velocity component
+    (the CFL input) is the host's."""
+    runner = block() | {
+        "name": "runner",
+        "velocity": [5.0, 0.0],
+        "shape": {"type": "box", "center": [0.88, 0.5], "size": [0.1, 0.1]},
+    }
+    sim = build_system(make_scene(mpm={"grid": {"cells": 32}, "boundary": {"type": "none"}, "bodies": [runner]}))
+    with pytest.raises(SimulationError) as err:
+        for _ in range(10):
+            sim.step()
+    x, v = sim.mpm.state()["x"], sim.mpm.state()["v"]
+    dx = sim.dx
+    outside = int(np.any((x < dx) | (x > 1.0 - dx), axis=1).sum())
+    assert outside > 0
+    assert f"body 'runner': {outside} particles left the grid domain" in str(err.value)
+    assert sim.mpm.max_speed() == np.abs(v).max()
+
+
+def test_a_step_redone_after_a_cfl_violation_restarts_from_its_state():
+    """A block at 4 m/s gets two substeps of 1 ms (CFL bound: (4 + 1.64 + 0.02) m/s * 2 ms / (0.3 dx) = 1.2)
+    but a control impulse the count does not foresee takes it to 14 m/s: CFL 14 * 1e-3 * 32 = 0.45 > 0.3,
+    so the step is redone with four substeps from the state it started from (kept on the device while the
+    first try's two substeps ran), and ends where four fixed substeps from the start end. A record kept
+    while the engine steps on keeps its state (read before its slot is overwritten)."""
+    mass = 1000.0 / 64**2  # [kg] density times the particle's area, (dx / 2)^2
+    body = block() | {"velocity": [4.0, 0.0]}
+    controls = [{"body": "block", "impulse": [10.0 * mass, 0.0]}]
+    sim = build_system(make_scene(mpm={"grid": {"cells": 32}, "bodies": [body]}, controls=controls, steps=1))
+    sim.rollout()
+    assert sim.last.substeps == 4  # not 2: redone
+    redone = sim.mpm.state()
+    sim.reset()
+    sim.stepping.fixed = 4
+    sim.rollout()
+    for key, value in sim.mpm.state().items():
+        np.testing.assert_allclose(redone[key], value, rtol=1e-12, atol=1e-12, err_msg=key)
+    start = sim.mpm.state()
+    record = sim.step().mpm
+    for _ in range(3):
+        sim.step()
+    for key, value in start.items():
+        assert np.array_equal(record.state[key], value), key
+
+
+def test_a_forward_run_reads_no_particle_state_but_for_the_energy_check():
+    """Five macro steps through the loop of `cosim run` read the particles back only for the
+    conservation check's start (x, v and F of step 0; its next check is at step 10): the NaN, CFL and
+    domain checks run on the device, and the loop's records are dropped before their slots are reused."""
+    sim = build_system(make_scene())
+    reads, read_slot = [], sim.mpm.read_slot
+    sim.mpm.read_slot = lambda key, slot: reads.append(key) or read_slot(key, slot)
+    sim.rollout()
+    assert sorted(reads) == ["F", "v", "x"]
+
+
 def test_forward_run_allocates_no_gradient_buffers():
     sim = build_system(make_scene(controls=[{"body": "block"}]))
-    assert sim.mpm.n_slots == 2
+    assert sim.mpm.n_slots == 4  # four particle slots (a step keeps its start and the last one's), one grid
     assert not sim.mpm.gradient_buffers_allocated()
     assert build_system(make_scene(controls=[{"body": "block"}]), requires_grad=True).mpm.gradient_buffers_allocated()
 

@@ -32,7 +32,8 @@ def tiny(tmp_path_factory):
 def test_a_sweep_gives_the_same_numbers_on_one_and_two_workers(tiny, tmp_path):
     """Four cases (E x nu) with 1 worker (2 Taichi threads) and with 2 (1 thread each): every metric
     agrees to round-off (1e-9 relative; Taichi's atomic adds may sum in another order), and the
-    stiffer block stores a different strain energy (the cases really ran with their settings)."""
+    stiffer block needs more substeps (its faster elastic wave: the cases really ran with their settings;
+    the falling block's strain energy is zero to round-off in every case)."""
     from cosim.cli import main
 
     assert main(["sweep", str(tiny), *GRID, "--workers", "1", "--out", str(tmp_path / "w1"), "--quiet"]) == 0  # here
@@ -51,8 +52,8 @@ def test_a_sweep_gives_the_same_numbers_on_one_and_two_workers(tiny, tmp_path):
         for key, value in a.items():
             if key.startswith("energy") or key in ("max_cfl", "substeps_total", "particles"):
                 assert float(b[key]) == pytest.approx(float(value), rel=1e-9, abs=1e-12), key
-    strain = [float(r["energy_final/strain"]) for r in one]
-    assert abs(strain[0] - strain[2]) > 0.05 * max(strain[0], strain[2])
+    substeps = [float(r["substeps_total"]) for r in one]
+    assert substeps[2] > substeps[0] and substeps[3] > substeps[1]
 
 
 def test_a_wrong_grid_key_stops_before_any_worker_starts(tiny):

@@ -13,12 +13,24 @@ compiles every kernel:
   with checkpoint recompute, DART vjp, boundary vjp) against its recorded
   forward: backward / forward.
 
+And what the scene API costs over the bare engine, on `cosim bench mpm`'s elastic
+block (E = 1e4 Pa, dt = 1e-4 s, fixed substeps, float32, 2D 128^2 and 3D 64^3; in
+a process of its own each, Taichi's precision being per process): the same macro
+steps through ``CoupledSystem.step`` (as `cosim run` steps: the NaN / CFL / domain
+checks, the conservation check every 10 steps, the contract step) and through
+``MPMEngine.advance`` alone, in alternating blocks of 10 continuing one motion;
+api / bare - 1 is the overhead, "host ms" the part of a step outside the MPM's
+contract step.
+
 Each measurement is the median of ``repeat`` runs.
 """
 
 from __future__ import annotations
 
 import csv
+import json
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -36,6 +48,11 @@ COLUMNS = [
     "coupled_vs_dart",
     "bwd_fwd",
 ]
+OVERHEAD_CONFIGS = [
+    {"dim": 2, "cells": 128, "side": 141},  # 19,881 particles
+    {"dim": 3, "cells": 64, "side": 31},  # 29,791 particles
+]
+OVERHEAD_COLUMNS = ["dim", "particles", "substeps", "macro_steps", "api_ms", "bare_ms", "host_ms", "overhead"]
 
 
 def _forward(scene, steps: int, repeat: int) -> list[dict]:
@@ -95,6 +112,89 @@ def _backward(scene, steps: int, repeat: int) -> float:
     return float(np.median(ratios))
 
 
+def block_scene(dim: int, cells: int, side: int, substeps: int, steps: int):
+    """`cosim bench mpm`'s elastic block (side^dim particles at dx / 2, E = 1e4 Pa) as a float32 scene with
+    ``substeps`` fixed substeps of 1e-4 s per macro step."""
+    from cosim.scene import parse_scene
+
+    data = {
+        "name": f"block_{dim}d",
+        "dim": dim,
+        "precision": "float32",
+        "steps": steps,
+        "time": {"frame_dt": substeps * 1e-4, "substeps": substeps},
+        "mpm": {
+            "grid": {"cells": cells},
+            "bodies": [
+                {
+                    "name": "block",
+                    "material": {"type": "elastic", "E": 1e4, "nu": 0.3, "density": 1000},
+                    "shape": {"type": "box", "center": [0.5] * dim, "size": [side * 0.5 / cells] * dim},
+                }
+            ],
+        },
+    }
+    return parse_scene(data, Path.cwd())
+
+
+def measure_overhead(dim: int, cells: int, side: int, substeps: int, steps: int, repeat: int) -> dict:
+    """In this process (float32), after a warm-up rollout from step 0 (which starts the conservation check):
+    ``repeat`` times, ``steps`` macro steps through the scene API (``CoupledSystem.step``, as `cosim run`
+    steps) then ``steps`` through the bare engine, continuing the same motion (a block falling freely,
+    whose cost per substep does not change); per-step medians [ms]. With ``steps`` = 10 each API block
+    holds one conservation check, as every 10 steps of a run do."""
+    import taichi as ti
+
+    from cosim.runtime import ensure_taichi
+    from cosim.scene.build import build_system
+
+    ensure_taichi("cpu", "float32")
+    sim = build_system(block_scene(dim, cells, side, substeps, steps))
+    sim.rollout()  # compiles
+    dt = sim.frame_dt / substeps
+    api, bare, host = [], [], []
+    for _ in range(repeat):
+        sim.timings = {}
+        t = time.perf_counter()
+        for _ in range(steps):
+            sim.step()
+        ti.sync()
+        api.append((time.perf_counter() - t) / steps)
+        host.append(api[-1] - sim.timings["mpm"] / steps)
+        sim.timings = None
+        t = time.perf_counter()
+        for _ in range(steps):
+            sim.mpm.advance(dt, substeps)
+        ti.sync()
+        bare.append((time.perf_counter() - t) / steps)
+    a, b = float(np.median(api)), float(np.median(bare))
+    return {
+        "dim": dim,
+        "particles": sim.mpm.n_particles,
+        "substeps": substeps,
+        "macro_steps": steps,
+        "api_ms": 1e3 * a,
+        "bare_ms": 1e3 * b,
+        "host_ms": 1e3 * float(np.median(host)),
+        "overhead": a / b - 1.0,
+    }
+
+
+def _overhead_rows(quick: bool, repeat: int) -> list[dict]:
+    """``measure_overhead`` per configuration, each in a subprocess (float32)."""
+    substeps, steps = (5, 10) if quick else (20, 10)
+    rows = []
+    for cfg in OVERHEAD_CONFIGS:
+        args = json.dumps({**cfg, "substeps": substeps, "steps": steps, "repeat": repeat})
+        cmd = [sys.executable, "-m", "cosim.bench.coupling", args]
+        res = subprocess.run(cmd, capture_output=True, text=True, check=False)  # a failure raises with its stderr
+        if res.returncode != 0:
+            raise RuntimeError(f"bench coupling, scene API overhead {cfg}: {res.stderr[-2000:]}")
+        rows.append(json.loads(res.stdout.strip().splitlines()[-1]))
+        print(f"  scene API over bare engine, {cfg['dim']}D: {rows[-1]['overhead']:+.1%}", flush=True)
+    return rows
+
+
 def run_coupling_bench(out_dir: Path, quick: bool = False, repeat: int = 3) -> int:
     from cosim.run import hardware_line
     from cosim.runtime import ensure_taichi
@@ -142,7 +242,28 @@ def run_coupling_bench(out_dir: Path, quick: bool = False, repeat: int = 3) -> i
             f"| {r['scene']} | {r['step_ms']:.2f} | {r['mpm_ms']:.2f} | {r['dart_ms']:.3f} | {r['coupler_ms']:.2f} | "
             f"{r['coupled_vs_mpm']:.2f} | {r['coupled_vs_dart']:.0f} | {r['bwd_fwd']:.2f} |"
         )
+    overhead = _overhead_rows(quick, repeat)
+    with open(out_dir / "overhead.csv", "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=OVERHEAD_COLUMNS)
+        writer.writeheader()
+        writer.writerows(overhead)
+    lines += [
+        "",
+        f"Scene API over the bare MPM engine (elastic block, float32, medians of {repeat} alternating runs)",
+        "",
+        "| dim | particles | substeps x macro steps | API ms/step | bare ms/step | host ms/step | overhead |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for r in overhead:
+        lines.append(
+            f"| {r['dim']} | {r['particles']} | {r['substeps']} x {r['macro_steps']} | {r['api_ms']:.1f} | "
+            f"{r['bare_ms']:.1f} | {r['host_ms']:.2f} | {r['overhead']:+.1%} |"
+        )
     (out_dir / "coupling.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
-    print(f"wrote {out_dir}/coupling.csv, coupling.md")
+    print(f"wrote {out_dir}/coupling.csv, overhead.csv, coupling.md")
     return 0
+
+
+if __name__ == "__main__":
+    print(json.dumps(measure_overhead(**json.loads(sys.argv[1]))))

@@ -23,7 +23,10 @@ The soft-body engine (MPM, ``cosim.engines.mpm.MPMEngine``, name ``"mpm"``):
               F (N, d, d) deformation gradient; particles in body order.
     inputs    dt [s] substep, substeps K, impulse (N, d) [N s] per particle over the
               macro step (controls) or None, boundaries {source: BoundaryStates}.
-    outputs   state (after the step), reactions {source: Reactions}.
+    outputs   state (after the step; without gradients a read-only mapping read from the
+              device on first access, ``cosim.engines.slot_state``), reactions {source:
+              Reactions}, health {body: BodyHealth} (max |v| [m/s], non-finite and
+              out-of-grid particle counts, the first bad substep: ``cosim.engines.mpm_watch``).
     vjp       grad_outputs {state, reactions} -> {state, impulse, boundaries, E, nu}:
               the reaction adjoints are an argument, the boundary adjoints a result.
 

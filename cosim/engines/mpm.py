@@ -13,6 +13,7 @@ Boundary sources (``cosim.couplers.boundary``) are attached by name; each step's
 knows sources and hooks only through their methods, never by type.
 """
 
+import weakref
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -20,6 +21,8 @@ import taichi as ti
 
 from cosim.engines.mpm_adjoint import MPMAdjointKernels
 from cosim.engines.mpm_kernels import STATE_KEYS, MPMConfig, ParticleBody
+from cosim.engines.mpm_watch import BodyHealth
+from cosim.engines.slot_state import SlotState
 
 __all__ = ["STATE_KEYS", "MPMConfig", "MPMEngine", "MPMRecord", "ParticleBody"]
 
@@ -63,6 +66,9 @@ class MPMEngine(MPMAdjointKernels):
     def __init__(self, config: MPMConfig, bodies: list[ParticleBody]):
         self.boundaries: dict = {}  # name -> boundary source
         self._known_state = None  # the state the last step returned, while it is still the current one
+        self._known_health = None  # the survey of the current state, once made
+        self._views: list = []  # weak references to the SlotState views handed out
+        self._previous_start = -1  # forward only: the slot the last step started from
         super().__init__(config, bodies)
         self._material = self.material()  # E, nu per body now: the derived quantities' one source
 
@@ -120,17 +126,25 @@ class MPMEngine(MPMAdjointKernels):
         return {k: self._get(getattr(self, k), self._slot) for k in STATE_KEYS}
 
     def max_speed(self) -> float:
-        """Largest velocity component [m/s] of any particle now (reads only v, or nothing after a step)."""
-        v = self._known_state["v"] if self._known_state is not None else self._get(self.v, self._slot)
-        return float(np.abs(v).max())
+        """Largest velocity component [m/s] of any particle now (from ``health``: no particle state read)."""
+        return max(h.speed for h in self.health().values())
+
+    def health(self) -> dict[str, BodyHealth]:
+        """Per body name: the current particles' largest velocity component [m/s], non-finite and
+        out-of-grid counts, and the first substep of the last step that left a NaN or inf
+        (``cosim.engines.mpm_watch``): surveyed on the device once per state, a few numbers read."""
+        if self._known_health is None:
+            self._known_health = self.watch.survey(self._slot)
+        return self._known_health
 
     def set_state(self, state: dict[str, np.ndarray]) -> None:
-        """Restore a state from ``state()``; the next step starts from it bit for bit."""
+        """Restore a state from ``state()`` (or a step's); the next step starts from it bit for bit."""
+        values = {k: state[k] for k in STATE_KEYS}  # read first: ``state`` may live in slot 0
+        self._forget(0)
         for k in STATE_KEYS:
-            self._put(getattr(self, k), 0, state[k])
+            self._put(getattr(self, k), 0, values[k])
         self._slot = 0
         self._resident = -1
-        self._known_state = None
 
     def parameters(self) -> list:
         """x0, v0 (initial state), E, nu per body (material) and, with controls, the impulses (input)."""
@@ -162,39 +176,51 @@ class MPMEngine(MPMAdjointKernels):
     def step(self, inputs: dict) -> tuple[dict, MPMRecord]:
         """One macro step: ``inputs`` dt [s], substeps, impulse (N, d) [N s] or None (spread evenly over
         the substeps in P2G), boundaries {source: BoundaryStates} for every attached source.
-        Returns ({state, reactions {source: Reactions}}, record). The returned state is also the
-        next step's record of the state before it (one host read per step): do not modify it in place."""
+        Returns ({state, reactions {source: Reactions}, health {body: BodyHealth}}, record), ``health`` the
+        device's NaN / speed / domain survey of the state after. That state is also the next step's record
+        of the state before it: with gradients read once per step (the tape keeps it), else a ``SlotState``
+        read on first access (and kept when its slot is overwritten). Do not modify it in place."""
         dt, K = float(inputs["dt"]), int(inputs["substeps"])
         boundaries = inputs.get("boundaries") or {}
         missing = sorted(set(self.boundaries) - set(boundaries))
         if missing:
             raise ValueError(f"MPM step: no boundary states for sources {missing}")
-        before = self._known_state if self._known_state is not None else self.state()
+        before = self._known_state if self._known_state is not None else self._snapshot()
         record = MPMRecord(before, dt, K, inputs.get("impulse"), boundaries, precision=self.real)
         self._write_boundaries(boundaries)
         record.token = self.advance(dt, K, record.impulse)
         reactions = {name: source.reactions(K) for name, source in self.boundaries.items()}
-        self._known_state = self.state()
-        return {"state": self._known_state, "reactions": reactions}, record
+        self._known_state = self._snapshot()
+        return {"state": self._known_state, "reactions": reactions, "health": self.health()}, record
+
+    def _snapshot(self) -> dict[str, np.ndarray] | SlotState:
+        """The current state for a record or the outputs: read now with gradients (the tape keeps it),
+        else left on the device until something reads it."""
+        if self.cfg.requires_grad:
+            return self.state()
+        view = SlotState(self, self._slot)
+        self._views = [ref for ref in self._views if ref() is not None] + [weakref.ref(view)]
+        return view
 
     def advance(self, dt: float, substeps: int, impulse: np.ndarray | None = None) -> int:
         """``substeps`` substeps of ``dt`` seconds with the boundaries as written; returns the step's token.
         The bare stepping under ``step`` (benchmarks use it to time the kernels alone)."""
         self._set_control(impulse)
-        self._known_state = None
         share = 1.0 / substeps
         if self.cfg.requires_grad:
             if substeps > self.cfg.grad_substeps:
                 raise ValueError(f"{substeps} substeps exceed the {self.cfg.grad_substeps} built for gradients")
+            self._forget(*range(self.n_slots))
             if self._slot != 0:
                 self._copy_slot(self._slot, 0)
-            for s in range(substeps):
-                self._substep(s, s + 1, dt, share, s)
-            self._slot = substeps
+            route = [(s, s + 1) for s in range(substeps)]
         else:
-            for s in range(substeps):
-                self._substep(self._slot, 1 - self._slot, dt, share, s)
-                self._slot = 1 - self._slot
+            route = self._rotation(substeps)
+            self._forget(*{dst for _, dst in route})
+            self._previous_start = self._slot
+        for s, (src, dst) in enumerate(route):
+            self._substep(src, dst, dt, share, s)
+            self._slot = dst
         self._token += 1
         self._resident = self._token if self.cfg.requires_grad else -1
         return self._token
@@ -212,7 +238,7 @@ class MPMEngine(MPMAdjointKernels):
         K, dt = record.substeps, record.dt
         share = 1.0 / K
         self._set_control(record.impulse)
-        self._known_state = None  # a recompute moves the slots away from the forward state
+        self._forget()  # a recompute moves the slots away from the forward state
         self._write_boundaries(record.boundaries)  # the step's boundary, for its backward (and recompute)
         if record.token != self._resident:
             self.set_state(record.state)
@@ -271,6 +297,30 @@ class MPMEngine(MPMAdjointKernels):
             return
         full = np.zeros((self.n_particles, self.dim)) if impulse is None else impulse
         self.control.from_numpy(self._real(full))
+
+    # ------------------------------------------------------------ slots
+    def _rotation(self, substeps: int) -> list[tuple[int, int]]:
+        """Forward-only (source, destination) slots of each substep: from the current slot into the two
+        slots that neither this step nor the last one started from, in turn. The state before the step
+        stays for a redo after a CFL violation and for its record's readers; the last step's stays while
+        the coupled loop still holds that record, so its view is gone before its slot is overwritten."""
+        start = self._slot
+        a, b = [k for k in range(self.n_slots) if k not in (start, self._previous_start)][:2]
+        return [(start if s == 0 else (a, b)[(s - 1) % 2], (a, b)[s % 2]) for s in range(substeps)]
+
+    def _forget(self, *written: int) -> None:
+        """The current state changes and slots ``written`` are about to be overwritten: drop what was
+        known of the state, and let the ``SlotState`` views of those slots that are still held read
+        their keys first."""
+        self._known_state = self._known_health = None
+        for ref in self._views:
+            view = ref()
+            if view is not None and view._engine is self and view._slot in written:
+                view.detach()
+
+    def read_slot(self, key: str, slot: int) -> np.ndarray:
+        """State key ``key`` (of ``STATE_KEYS``) of the particles in ``slot``, float64 on the host."""
+        return self._get(getattr(self, key), slot)
 
     # ------------------------------------------------------------ helpers
     def gradient_buffers_allocated(self) -> bool:

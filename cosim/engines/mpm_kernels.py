@@ -5,10 +5,11 @@ affine momentum. Units are SI: positions [m], velocities [m/s], masses [kg],
 stresses [Pa], impulses [N s]. The domain is the box [0, cells * dx]^d.
 
 Particle state lives in *slots*: ``x[slot, p]`` etc. A forward-only engine
-uses two slots (ping-pong) and one grid. An engine built with ``requires_grad``
-keeps ``substeps + 1`` slots and one grid (and stress scratch) per substep, so
-one macro step is all resident for the adjoint (``cosim.engines.mpm_adjoint``),
-which never re-runs P2G.
+uses four slots and one grid: a step alternates between the two slots that
+neither it nor the last step started from (``cosim.engines.mpm``). An engine
+built with ``requires_grad`` keeps ``substeps + 1`` slots and one grid (and
+stress scratch) per substep, so one macro step is all resident for the adjoint
+(``cosim.engines.mpm_adjoint``), which never re-runs P2G.
 
 One substep, split into the phases a coupler drives (see DESIGN.md):
 
@@ -30,6 +31,7 @@ import taichi as ti
 
 from cosim.engines.arch import current_choices
 from cosim.engines.materials import MATERIALS
+from cosim.engines.mpm_watch import ParticleWatch
 
 
 @dataclass
@@ -94,7 +96,7 @@ class MPMKernels:
         self.materials = [MATERIALS[b.material]() for b in bodies]
         grad = config.requires_grad
         _check_gradient_build(grad)
-        self.n_slots = config.grad_substeps + 1 if grad else 2
+        self.n_slots = config.grad_substeps + 1 if grad else 4
 
         self.x = ti.Vector.field(d, float, shape=(self.n_slots, n), needs_grad=grad)
         self.v = ti.Vector.field(d, float, shape=(self.n_slots, n), needs_grad=grad)
@@ -147,6 +149,7 @@ class MPMKernels:
         self._slot = 0
         self._token = 0
         self._resident = -1  # token of the step whose substeps fill the slots
+        self.watch = ParticleWatch(self)  # NaN / speed / domain checks on the device
         eye = np.eye(d)
         self.set_state(
             {
@@ -280,10 +283,12 @@ class MPMKernels:
                 self.grid_m[g, I] = 0.0
 
     @ti.kernel
-    def _g2p(self, src: ti.i32, dst: ti.i32, g: ti.i32, source: ti.template()):
-        """Gather velocity and affine field from the grid (``source.velocity``) into slot ``dst``."""
+    def _g2p(self, src: ti.i32, dst: ti.i32, g: ti.i32, source: ti.template(), s: ti.i32):
+        """Gather velocity and affine field from the grid (``source.velocity``) into slot ``dst``; flag
+        NaN / inf for substep s (``mpm_watch``)."""
         for p in range(self.n_particles):
-            base, fx, w = self.stencil(self.x[src, p])
+            xp = self.x[src, p]
+            base, fx, w = self.stencil(xp)
             new_v = ti.Vector.zero(float, self.dim)
             new_C = ti.Matrix.zero(float, self.dim, self.dim)
             for offset in ti.static(ti.grouped(ti.ndrange(*([3] * self.dim)))):
@@ -294,6 +299,7 @@ class MPMKernels:
                 new_C += (4.0 * self.inv_dx * weight) * node_v.outer_product(dpos)
             self.v[dst, p] = new_v
             self.C[dst, p] = new_C
+            self.watch.flag(p, s, xp, self.F[src, p], new_v, new_C)
 
     @ti.kernel
     def _advect(self, mat: ti.template(), b: ti.i32, start: ti.i32, end: ti.i32, src: ti.i32, dst: ti.i32, dt: float):
@@ -385,16 +391,16 @@ class MPMKernels:
         for hook in self.grid_hooks:
             hook.apply(src, g, s, dt)
 
-    def post_coupling(self, src: int, dst: int, dt: float) -> None:
-        """Gather from the grid (G2P), advect and update deformation per body."""
-        self._g2p(src, dst, self._grid_index(src), self._grid_out)
+    def post_coupling(self, src: int, dst: int, dt: float, s: int) -> None:
+        """Gather from the grid (G2P) for substep s, advect and update deformation per body."""
+        self._g2p(src, dst, self._grid_index(src), self._grid_out, s)
         for b, (mat, (lo, hi)) in enumerate(zip(self.materials, self.ranges)):
             self._advect(mat, b, lo, hi, src, dst, dt)
 
     def _substep(self, src: int, dst: int, dt: float, control_share: float, s: int) -> None:
         self.pre_coupling(src, s, dt, control_share)
         self.coupling(src, s, dt)
-        self.post_coupling(src, dst, dt)
+        self.post_coupling(src, dst, dt, s)
 
 
 def _check_gradient_build(requires_grad: bool) -> None:

@@ -1,0 +1,110 @@
+"""Health checks of the MPM particles on the device: what the coupled system's NaN, CFL and domain checks read.
+
+- In every substep's G2P (``MPMKernels._g2p``, a forward kernel with a hand-written adjoint) ``flag``
+  looks at the values the gather holds anyway: a particle whose new v or C is NaN or inf lowers its
+  body's first bad substep to s; one whose x or F (as substep s - 1 left them) is, to s - 1 (-1: the
+  step started from it). An atomic min, written only by bad particles: nothing for healthy ones.
+- ``survey(slot)``, after a step: one parallel pass over the particles gives per body the largest velocity
+  component [m/s], the particles with a non-finite x, v, C and F, those outside [dx, L - dx] on some
+  axis (L the grid's extent [m]), and the first bad substep, which it resets. The host reads that small
+  table, never the particle state. A non-finite particle with no bad substep went bad in the last
+  substep's advection, after its G2P.
+
+Neither is differentiated: the substep's adjoint is the same with and without them.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+import taichi as ti
+
+KEYS = ("x", "v", "C", "F")  # the particle state's keys, as the survey counts them
+NONE = 2**30  # the first bad substep of a body with none
+CHUNK = 1024  # particles per survey chunk (chunks run in parallel, each serially)
+
+
+@dataclass
+class BodyHealth:
+    """One body's particles at the end of a step."""
+
+    speed: float  # [m/s] the largest velocity component
+    non_finite: dict[str, int]  # per state key (x, v, C, F): particles with a NaN or inf in it
+    outside: int  # particles outside [dx, L - dx] on some axis
+    first_bad: int | None  # the step's first substep that left a NaN or inf (-1: it started with one)
+
+
+@ti.func
+def non_finite(value) -> bool:
+    """True when the scalar ``value`` is NaN or +-inf (bit tests: immune to fast-math folding). A sum of a
+    particle's entries is non-finite exactly when one of them is (inf - inf is NaN), barring an overflow
+    of the sum itself near the float's largest value."""
+    return ti.math.isnan(value) or ti.math.isinf(value)
+
+
+@ti.data_oriented
+class ParticleWatch:
+    """The per-substep flags and the survey of one MPM engine (``MPMKernels``: its fields are read)."""
+
+    def __init__(self, engine):
+        self.engine = engine
+        self.n_bodies = len(engine.bodies)
+        self.first = ti.field(ti.i32, shape=self.n_bodies)  # per body: first bad substep, NONE if none
+        self.first.fill(NONE)
+        self.low = engine.dx  # [m] inside the grid: at least a cell from each face
+        self.high = ti.Vector([c * engine.dx - engine.dx for c in engine.cfg.cells])
+        chunks = [(p, min(p + CHUNK, hi), b) for b, (lo, hi) in enumerate(engine.ranges) for p in range(lo, hi, CHUNK)]
+        self.chunks = np.array(chunks, dtype=np.int32).reshape(-1, 3)  # start, end, body
+
+    @ti.func
+    def flag(self, p, s, x, F, v, C):
+        """In substep s's G2P of particle p: x and F from before it, v and C just gathered."""
+        if non_finite(x.sum() + F.sum()):
+            ti.atomic_min(self.first[self.engine.body_id[p]], s - 1)
+        elif non_finite(v.sum() + C.sum()):
+            ti.atomic_min(self.first[self.engine.body_id[p]], s)
+
+    @ti.kernel
+    def _survey(self, slot: ti.i32, chunks: ti.types.ndarray(), out: ti.types.ndarray(), first: ti.types.ndarray()):
+        """Per chunk c (parallel), into ``out[c]``: max |v|, particles with a non-finite x, v, C, F, particles
+        outside; ``first`` gets the first bad substeps, which are reset."""
+        e = self.engine
+        for c in range(chunks.shape[0]):
+            peak, outside = 0.0, 0
+            bad = ti.Vector.zero(ti.i32, 4)
+            for p in range(chunks[c, 0], chunks[c, 1]):
+                x, v = e.x[slot, p], e.v[slot, p]
+                peak = ti.max(peak, ti.abs(v).max())
+                sums = ti.Vector([x.sum(), v.sum(), e.C[slot, p].sum(), e.F[slot, p].sum()])
+                for k in ti.static(range(4)):
+                    bad[k] += non_finite(sums[k])
+                away = 0
+                for k in ti.static(range(e.dim)):
+                    away |= (x[k] < self.low) | (x[k] > self.high[k])
+                outside += away
+            out[c, 0] = peak
+            for k in ti.static(range(4)):
+                out[c, 1 + k] = bad[k]
+            out[c, 5] = outside
+        for b in range(self.n_bodies):
+            first[b] = self.first[b]
+            self.first[b] = NONE
+
+    def survey(self, slot: int) -> dict[str, BodyHealth]:
+        """{body name: its ``BodyHealth``} for the particles in ``slot``, with the first bad substep of the
+        substeps since the last survey; resets that."""
+        out = np.zeros((len(self.chunks), 6))
+        first = np.zeros(self.n_bodies, dtype=np.int32)
+        self._survey(slot, self.chunks, out, first)
+        peak = np.zeros(self.n_bodies)
+        np.maximum.at(peak, self.chunks[:, 2], out[:, 0])
+        counts = np.zeros((self.n_bodies, 5))
+        np.add.at(counts, self.chunks[:, 2], out[:, 1:])
+        return {
+            body.name: BodyHealth(
+                speed=float(peak[b]),
+                non_finite={k: int(n) for k, n in zip(KEYS, counts[b, :4])},
+                outside=int(counts[b, 4]),
+                first_bad=None if first[b] >= NONE else int(first[b]),
+            )
+            for b, body in enumerate(self.engine.bodies)
+        }
