@@ -75,7 +75,7 @@ def run_bench(
 
         return run_contact_bench(out_dir, quick=quick, repeat=repeat, workers=workers, address=address)
     if what == "mpm":
-        from cosim.bench.mpm import run_mpm_bench
+        from cosim.bench.mpm_modes import run_mpm_bench
 
         return run_mpm_bench(out_dir, quick=quick, sizes=sizes, baseline=baseline, repeat=repeat, profile=profile)
     raise ValueError(f"unknown benchmark {what!r}; choose one of {BENCHMARKS}")

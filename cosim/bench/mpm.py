@@ -188,27 +188,3 @@ def run_profile(out_dir: Path, top: int = 10) -> int:
         rows += [{"phase": phase, "kernel": k, "ms_per_substep": ms, "launches_per_substep": n} for k, ms, n in kernels]
     write_csv(out_dir / "mpm_profile.csv", rows)
     return 0
-
-
-def run_mpm_bench(
-    out_dir: Path, quick: bool = False, sizes: bool = False, baseline: Path | None = None, repeat: int = 3,
-    profile: bool = False,
-) -> int:  # fmt: skip
-    """``cosim bench mpm``: the chosen mode (module docstring) into ``out_dir``; returns the exit code."""
-    if profile and (sizes or baseline is not None):
-        from cosim.errors import InputError
-
-        raise InputError("--profile runs alone (3D 64³ float32); leave out --sizes and --baseline")
-    out_dir.mkdir(parents=True, exist_ok=True)
-    configs = size_configs(quick) if sizes else fixed_configs(quick)
-    try:
-        if profile:
-            return run_profile(out_dir)
-        if baseline is not None:
-            from cosim.bench.mpm_baseline import run_baseline_bench
-
-            return run_baseline_bench(out_dir, configs, baseline, repeat, "mpm_sizes" if sizes else "mpm")
-        return run_throughput(out_dir, configs, "mpm_sizes" if sizes else "mpm")
-    except RuntimeError as err:
-        print(err, file=sys.stderr)
-        return 1
