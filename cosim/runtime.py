@@ -15,7 +15,8 @@ environment variable ``COSIM_OPTIMIZE_KERNELS=1``.
 Threads: Taichi's CPU backend uses every core unless ``COSIM_CPU_THREADS`` caps it (set by
 the scale-out workers, ``cosim.scale``, so that W workers on C cores do not run W x C threads).
 Kernel cache: Taichi keeps compiled kernels in its offline cache (``~/.cache/taichi`` by
-default); ``COSIM_TAICHI_CACHE=DIR`` puts it elsewhere (a shared disk on a cluster, a scratch
+default, capped here at 1 GiB instead of Taichi's 100 MB unless ``TI_OFFLINE_CACHE_MAX_SIZE_OF_FILES``
+says otherwise); ``COSIM_TAICHI_CACHE=DIR`` puts it elsewhere (a shared disk on a cluster, a scratch
 folder in CI). Kernel profile: ``COSIM_KERNEL_PROFILER=1`` turns on Taichi's kernel profiler (each
 launch timed; ``ti.profiler.print_kernel_profiler_info()``), used by ``cosim bench mpm --profile``.
 These options are chosen by arch in ``init_options``; what the engines choose by
@@ -37,6 +38,9 @@ import os
 from cosim.errors import InputError
 
 _current: tuple[str, str, bool] | None = None
+# Taichi trims its kernel cache to 100 MB by default, least recently used first; the project's kernels
+# (one test-suite run: 113 MB) outgrow that, and a trimmed 3D adjoint then compiles again
+KERNEL_CACHE_BYTES = 2**30
 _optimize = os.environ.get("COSIM_OPTIMIZE_KERNELS", "") == "1"
 
 
@@ -105,7 +109,8 @@ def ensure_taichi(arch: str = "cpu", precision: str = "float64", gradients: bool
 def init_options(arch: str) -> dict:
     """The ``ti.init`` options that depend on the arch and the environment (see the module docstring):
     ``cpu_max_num_threads`` from ``COSIM_CPU_THREADS`` on a CPU, ``offline_cache_file_path`` from
-    ``COSIM_TAICHI_CACHE``, ``kernel_profiler`` from ``COSIM_KERNEL_PROFILER=1``."""
+    ``COSIM_TAICHI_CACHE``, ``kernel_profiler`` from ``COSIM_KERNEL_PROFILER=1``, and the cache's
+    size cap (``KERNEL_CACHE_BYTES``)."""
     from cosim.engines.arch import CPU_ARCHES
 
     options = {}
@@ -117,6 +122,8 @@ def init_options(arch: str) -> dict:
     cache = os.environ.get("COSIM_TAICHI_CACHE", "")
     if cache:
         options["offline_cache_file_path"] = cache
+    if "TI_OFFLINE_CACHE_MAX_SIZE_OF_FILES" not in os.environ:  # Taichi's own variable wins
+        options["offline_cache_max_size_of_files"] = KERNEL_CACHE_BYTES
     if os.environ.get("COSIM_KERNEL_PROFILER", "") == "1":
         options["kernel_profiler"] = True
     return options

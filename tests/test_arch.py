@@ -30,8 +30,11 @@ def test_an_engine_takes_its_scatter_from_the_running_arch_unless_told():
 def test_thread_cap_and_kernel_cache_are_settings(monkeypatch, tmp_path):
     monkeypatch.setenv("COSIM_CPU_THREADS", "1")
     monkeypatch.setenv("COSIM_TAICHI_CACHE", str(tmp_path))
+    monkeypatch.setenv("TI_OFFLINE_CACHE_MAX_SIZE_OF_FILES", "1000")  # Taichi's own variable: no cap from us
     assert init_options("cpu") == {"cpu_max_num_threads": 1, "offline_cache_file_path": str(tmp_path)}
     assert init_options("cuda") == {"offline_cache_file_path": str(tmp_path)}  # a CPU cap means nothing there
+    monkeypatch.delenv("TI_OFFLINE_CACHE_MAX_SIZE_OF_FILES")
+    assert init_options("cuda")["offline_cache_max_size_of_files"] >= 2**30  # the suite's kernels outgrow 100 MB
     monkeypatch.setenv("COSIM_CPU_THREADS", "two")
     with pytest.raises(InputError, match="COSIM_CPU_THREADS"):
         init_options("cpu")
