@@ -245,11 +245,11 @@ def test_gradients_from_particle_impulses_to_a_joint(model):
 
 
 def test_keeping_every_kth_checkpoint_gives_the_same_gradients():
-    """The tape keeps the MPM state of every 4th of 10 coupled steps (forecast contact) and the backward
+    """The tape keeps the MPM state of every 4th of 7 coupled steps (forecast contact) and the backward
     pass replays the MPM from them with the recorded boundaries: the gradients equal those of keeping
-    every step's state to round-off, and the tape holds 3 MPM states instead of 10."""
+    every step's state to round-off, and the tape holds 2 MPM states instead of 7."""
     loss = {"type": "joint_target", "skeleton": "box", "joint": "box", "target": [0.1, 0.0, 0.0]}
-    obj = Objective(build_system(gradient_scene("forecast", loss), requires_grad=True))
+    obj = Objective(build_system(gradient_scene("forecast", loss), requires_grad=True, steps=7))
     params = obj.initial_params()
     value_every, grads_every = obj.evaluate(params, grad=True)
     held_every = sum(r.checkpoint is not None for r in obj.tape.records)
@@ -259,7 +259,7 @@ def test_keeping_every_kth_checkpoint_gives_the_same_gradients():
     for key in ("impulse", "action", "v0", "x0"):
         scale = np.abs(grads_every[key]).max()
         assert scale > 0 and np.abs(grads[key] - grads_every[key]).max() <= 1e-12 * scale, key
-    assert (held_every, sum(r.checkpoint is not None for r in obj.tape.records)) == (10, 3)
+    assert (held_every, sum(r.checkpoint is not None for r in obj.tape.records)) == (7, 2)
 
 
 def test_an_uncoupled_link_costs_nothing_in_the_mpm():
