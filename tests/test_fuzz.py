@@ -14,7 +14,8 @@ import pytest
 from cosim.bench.fuzz import names_a_place, random_scene, run_fuzz
 from cosim.errors import SceneError
 
-TEST_SEEDS = [21, 148, 149, 150, 158, 161, 162, 165, 166, 176, 182, 184, 187, 188, 189, 190, 193, 194, 195, 198]
+# 13 seeds that still draw every feature the generator has (the test below); 200 in `cosim bench fuzz`
+TEST_SEEDS = [21, 148, 149, 150, 158, 161, 162, 165, 166, 176, 182, 184, 188]
 
 
 def test_the_seeds_cover_what_the_generator_draws():
@@ -125,7 +126,7 @@ def test_the_bench_writes_a_row_per_seed_and_a_scene_per_failure(tmp_path):
 
 
 def test_random_scenes_run_or_stop_with_a_clear_error(tmp_path):
-    """20 seeds, 2 workers, 240 s per case at most: no crash, hang or silent NaN, and each scene or
+    """13 seeds, 2 workers, 240 s per case at most: no crash, hang or silent NaN, and each scene or
     simulation error names a key path, a body or a step. Most of them run (a validator that came to
     refuse everything would otherwise pass here)."""
     records = run_fuzz(TEST_SEEDS, workers=2, timeout=240.0, log_dir=tmp_path)
@@ -134,4 +135,4 @@ def test_random_scenes_run_or_stop_with_a_clear_error(tmp_path):
     for r in records:
         if r.outcome != "ran":
             assert r.outcome in ("scene-error", "simulation-error") and names_a_place(r.message), (r.seed, r.message)
-    assert sum(r.outcome == "ran" for r in records) >= 15, [(r.seed, r.outcome) for r in records]
+    assert sum(r.outcome == "ran" for r in records) >= 10, [(r.seed, r.outcome) for r in records]
