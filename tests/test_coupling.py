@@ -121,10 +121,13 @@ def test_liquid_at_rest_in_a_welded_cup_weighs_on_it(model):
     assert abs(mean[0]) <= 0.02 * weight  # no net sideways push
 
 
+@pytest.mark.fidelity
 def test_a_light_box_floats_with_the_submerged_fraction_of_its_density_ratio():
     """Archimedes (forecast contact): a free box of density 500 dropped on water of density 1000
     settles half submerged; box height and water surface averaged over the last 0.8 s (the
-    surface: median over columns away from the box of the top particle + dx/4)."""
+    surface: median over columns away from the box of the top particle + dx/4). In the fidelity
+    set (``-m fidelity``) beside its matrix of models and density ratios: 15 s the default run
+    could not afford."""
     cells, steps = 64, 400
     dx = 1 / cells
     floor, width = 3 * dx, 1 - 6 * dx
