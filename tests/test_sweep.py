@@ -75,6 +75,7 @@ def test_run_does_not_import_ray(tiny, tmp_path):
     assert res.stdout.strip().splitlines()[-1] == "False"
 
 
+@pytest.mark.scale_out
 def test_optimize_starts_keeps_the_best_and_start_0_is_the_plain_run(tmp_path):
     """Three starts of the steering task: start 0 (unperturbed) reproduces a single `cosim optimize` to
     round-off, the perturbed ones begin elsewhere, and params.npz is the best start's."""
@@ -157,6 +158,7 @@ def test_grid_cases_combine_and_sample_reproducibly():
         grid_cases(["a.E="])
 
 
+@pytest.mark.scale_out
 def test_a_loss_sweep_reports_what_the_objective_gives(tmp_path):
     """`--loss` cases on the steering task: each row's loss and gradient norm equal Objective.evaluate's
     for that case's impulse scale (the scene's controls start at the swept impulse)."""
