@@ -43,11 +43,14 @@ CACHE_ENV = {
     "TI_OFFLINE_CACHE_MAX_SIZE_OF_FILES": str(2**30),  # a C int in Taichi: under 2 GiB
 }
 # (key, header, format) of the printed table; the CSV has every key
-TABLE = [
+CONFIG_COLUMNS = [
     ("dim", "dim", ">3"),
     ("precision", "precision", ">9"),
     ("grid", "grid", ">7"),
     ("particles", "particles", ">9"),
+]
+TABLE = [
+    *CONFIG_COLUMNS,
     ("steps", "steps", ">6"),
     ("fwd_Mpss", "fwd M/s", ">8.2f"),
     ("fwd_bwd_Mpss", "f+b M/s", ">8.3f"),

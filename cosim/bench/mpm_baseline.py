@@ -21,15 +21,12 @@ import subprocess
 import sys
 from pathlib import Path
 
-from cosim.bench.mpm import Interpreter, current_interpreter, print_table, run_config, write_csv
+from cosim.bench.mpm import CONFIG_COLUMNS, Interpreter, current_interpreter, print_table, run_config, write_csv
 from cosim.errors import InputError
 
 MEASURES = ["fwd_Mpss", "fwd_bwd_Mpss", "bwd_fwd_ratio", "peak_MiB"]
 TABLE = [
-    ("dim", "dim", ">3"),
-    ("precision", "precision", ">9"),
-    ("grid", "grid", ">7"),
-    ("particles", "particles", ">9"),
+    *CONFIG_COLUMNS,
     ("base_fwd_Mpss", "fwd base", ">8.2f"),
     ("cur_fwd_Mpss", "fwd cur", ">8.2f"),
     ("ratio_fwd_Mpss", "ratio", ">6.2f"),

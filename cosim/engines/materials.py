@@ -173,32 +173,29 @@ class Plastic(Elastic):
     project_uses_lame = True  # the yield limit scales with 1 / mu
 
     @ti.func
-    def project(self, F, mu, lam, yield_stress):
+    def strain_parts(self, F, mu, yield_stress):
+        """R (F = R S), the mean and deviatoric parts of the corotated strain S - I, |dev|^2 and the
+        yield limit on |dev|: what ``project`` and its adjoint both start from."""
         R = polar_rotation(F)
         S = R.transpose() @ F
-        S = 0.5 * (S + S.transpose())
         eye = ti.Matrix.identity(float, F.n)
-        strain = S - eye
+        strain = 0.5 * (S + S.transpose()) - eye
         mean = strain.trace() / F.n
         dev = strain - mean * eye
-        limit = ti.sqrt(2.0 / 3.0) * yield_stress / (2.0 * mu)
-        norm2 = (dev * dev).sum()
+        return R, mean, dev, (dev * dev).sum(), ti.sqrt(2.0 / 3.0) * yield_stress / (2.0 * mu)
+
+    @ti.func
+    def project(self, F, mu, lam, yield_stress):
+        R, mean, dev, norm2, limit = self.strain_parts(F, mu, yield_stress)
         # min(1, limit/|dev|) without a branch and without sqrt(0) in the adjoint
         scale = limit / ti.sqrt(ti.max(norm2, limit * limit))
-        return R @ (eye + mean * eye + scale * dev)
+        return R @ ((1.0 + mean) * ti.Matrix.identity(float, F.n) + scale * dev)
 
     @ti.func
     def project_vjp(self, F, mu, lam, yield_stress, out_bar):
         """(dL/dF, dL/dmu, dL/dlam) of ``project`` (out = R Y, Y = (1 + mean) I + scale dev), given dL/dout."""
-        R = polar_rotation(F)
-        P = R.transpose() @ F
-        S = 0.5 * (P + P.transpose())
+        R, mean, dev, norm2, limit = self.strain_parts(F, mu, yield_stress)
         eye = ti.Matrix.identity(float, F.n)
-        strain = S - eye
-        mean = strain.trace() / F.n
-        dev = strain - mean * eye
-        limit = ti.sqrt(2.0 / 3.0) * yield_stress / (2.0 * mu)
-        norm2 = (dev * dev).sum()
         scale = 1.0
         dev_bar = ti.Matrix.zero(float, F.n, F.n)
         mu_bar = 0.0
