@@ -24,7 +24,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -33,6 +33,7 @@ from cosim.conservation import Conservation, control_work
 from cosim.couplers.tunnelling import TunnelWatch
 from cosim.engines.contract import add_states
 from cosim.errors import SimulationError
+from cosim.step_record import StepRecord
 
 RETRIES = 4  # auto substeps: how often a step is redone with twice the substeps
 TUNNEL_SHARE, TUNNEL_MIN = 0.01, 10  # particles through a rigid body in one step that stop the run
@@ -72,40 +73,6 @@ class ActionPlan:
     def segment(self, n: int, segments: int) -> int:
         """Which of ``segments`` held actions macro step n uses (the last one after the sequence)."""
         return min(n // self.hold, segments - 1)
-
-
-@dataclass
-class StepRecord:
-    """One macro step on the tape: one record per engine and coupler, keyed by name."""
-
-    time: float  # [s] at the start of the step
-    mpm: Any
-    engines: dict[str, Any]
-    couplers: dict[str, Any]
-    outputs: dict[str, Any] = field(default_factory=dict)  # non-differentiable per-step data (reactions)
-
-    @property
-    def substeps(self) -> int:
-        return self.mpm.substeps
-
-    @property
-    def dt(self) -> float:
-        return self.mpm.dt
-
-    @property
-    def nbytes(self) -> int:
-        """Host memory the record holds [bytes]: the MPM's checkpoint, impulses and boundaries, and the
-        manipulator engines' records."""
-        return self.mpm.nbytes + sum(getattr(r, "nbytes", 0) for r in self.engines.values())
-
-    @property
-    def checkpoint(self) -> dict[str, np.ndarray] | None:
-        """The MPM state before the step, or None when released (the engines' own states are always held)."""
-        return self.mpm.state
-
-    def keep_checkpoint(self, state: dict[str, np.ndarray] | None) -> None:
-        """Hold the MPM state before the step (in the engine's precision), or release it (None)."""
-        self.mpm.keep_checkpoint(state)
 
 
 class CoupledSystem:
