@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 
 from cosim.bench import BENCHMARKS
+from cosim.cli_args import add_ray_options, positive_float, positive_int
 from cosim.errors import CosimError
 
 DEFAULT_SCENE = "cloth_catch.yaml"
@@ -286,34 +287,6 @@ def _rigid_of(scene, traj, path: Path):
             "render it with the scene that wrote it"
         )
     return rigid
-
-
-def add_ray_options(parser: argparse.ArgumentParser) -> None:
-    """``--workers`` and ``--address``: where fanned-out runs go (``cosim.scale.pool``)."""
-    parser.add_argument(
-        "--workers", type=positive_int, help="Ray worker processes (default: the cores, or the cluster's CPUs)"
-    )
-    parser.add_argument("--address", help="a Ray cluster's address (e.g. 10.0.0.5:6379); default: a local Ray")
-
-
-def positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
-    return value
-
-
-def positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {value}")
-    return value
 
 
 def make_parser() -> argparse.ArgumentParser:
