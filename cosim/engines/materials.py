@@ -10,14 +10,25 @@ through a compile-time template argument, so the hot kernels hold no
 - ``project(F, mu, lam, yield_stress)``: the return mapping applied to the
   trial deformation gradient after G2P (plasticity, liquid reset).
 
-Everything is plain arithmetic (no ``ti.svd``) so Taichi's reverse-mode
-autodiff goes through it in 2D and 3D; see ``polar_rotation``.
+Everything is plain arithmetic (no ``ti.svd``). Gradients go through the
+hand-written ``kirchhoff_vjp`` and ``project_vjp`` (``cosim.engines.mpm_adjoint``),
+never through Taichi's autodiff, so the 3D polar decomposition may iterate until
+it has converged (``polar_rotation``).
 """
 
 import taichi as ti
 
-SCALED_NEWTON_ITERATIONS = 3
-PLAIN_NEWTON_ITERATIONS = 2
+MAX_NEWTON_ITERATIONS = 20  # Frobenius-scaled Newton needs at most ~9 up to condition numbers of 1e16
+# Scaling helps only far from a rotation: it is dropped once an iteration moves R less than this
+# (squared Frobenius norm), as Higham recommends.
+UNSCALED_BELOW = 1e-4
+
+
+def newton_stop() -> float:
+    """Squared Frobenius norm of a Newton update below which the polar iteration stops: Newton
+    converges quadratically (next error ~ update^2 / 2), so an update of sqrt(2 eps) leaves an error
+    near the precision's round-off eps (float32 6e-8, float64 1.1e-16). Read when a kernel compiles."""
+    return 1e-7 if ti.lang.impl.current_cfg().default_fp == ti.f32 else 2e-16
 
 
 @ti.func
@@ -64,10 +75,13 @@ def cofactor(F):
 def polar_rotation(F):
     """Rotation R of the polar decomposition F = R S (S symmetric).
 
-    2D: closed form. 3D: scaled Newton iterations R <- (g R + (g R)^-T) / 2
-    with g = |det R|^(-1/3) (Higham), a fixed count so the result is a
-    differentiable function of F. Six iterations converge to round-off for
-    stretches between 0.05 and 20 (checked in tests/test_materials.py).
+    2D: closed form. 3D: Newton iterations R <- (g R + (g R)^-T) / 2 with
+    Frobenius scaling g = (|R^-T| / |R|)^(1/2) (Higham), until an update is
+    below ``newton_stop()``: round-off for stretches between 0.05 and 20
+    (tests/test_materials.py). A deformation near a rotation, the common case
+    in a substep, stops after 2-3 iterations (a fixed 5 before). Not for
+    Taichi's autodiff (the loop count depends on F); ``polar_rotation_vjp``
+    is its derivative.
     """
     R = F
     if ti.static(F.n == 2):
@@ -77,12 +91,18 @@ def polar_rotation(F):
         c, s = a * inv_norm, b * inv_norm
         R = ti.Matrix([[c, -s], [s, c]])
     else:
-        for _ in ti.static(range(SCALED_NEWTON_ITERATIONS)):
+        scaled = True
+        for _ in range(MAX_NEWTON_ITERATIONS):
             R_inv_t = inverse_transpose_3(R)
-            g = ti.sqrt(ti.sqrt(R_inv_t.norm_sqr() / R.norm_sqr()))
-            R = 0.5 * (g * R + (1.0 / g) * R_inv_t)
-        for _ in ti.static(range(PLAIN_NEWTON_ITERATIONS)):
-            R = 0.5 * (R + inverse_transpose_3(R))
+            g = 1.0
+            if scaled:
+                g = ti.sqrt(ti.sqrt(R_inv_t.norm_sqr() / R.norm_sqr()))
+            R_next = 0.5 * (g * R + (1.0 / g) * R_inv_t)
+            update = (R_next - R).norm_sqr()
+            R = R_next
+            scaled = update > UNSCALED_BELOW
+            if update < ti.static(newton_stop()):
+                break
     return R
 
 
