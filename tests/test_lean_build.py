@@ -28,7 +28,7 @@ def placed(field):
 
 compiled = {
     name: sorted({type(ref()).__name__ for key in getattr(type(mpm), name)._primal.mapper.mapping for ref in key[1:2]})
-    for name in ("_stress", "_advect")
+    for name in ("_stress", "_g2p_advect")
 }
 print(json.dumps({
     "modules": sorted(m for m in sys.modules if m.split(".")[0] == "dartpy" or m.startswith(("cosim.engines.rigid", "cosim.engines.cloth"))),
@@ -48,4 +48,4 @@ def test_a_pure_mpm_run_builds_imports_and_compiles_only_the_mpm():
     assert seen["modules"] == []  # neither dartpy nor our rigid or cloth engines
     assert seen["hooks"] == 0  # no contact model on the grid or the particles
     assert seen["grad_buffers"] == [False] * 4
-    assert seen["materials_compiled"] == {"_stress": ["Elastic"], "_advect": ["Elastic"]}  # no return mapping
+    assert seen["materials_compiled"] == {"_stress": ["Elastic"], "_g2p_advect": ["Elastic"]}  # no return mapping

@@ -2,9 +2,12 @@
 
 Taichi's reverse-mode autodiff of the transfer kernels unrolls the 3^d stencil
 into a large reverse program: in 3D the reverse P2G and G2P alone compiled for
-about 50 s (measured). The adjoints here are written out instead and loop over
-the stencil at run time, so each compiles in under half a second and runs as
-fast as an unrolled one (measured; docs/benchmarks.md). The per-particle stress
+about 50 s (measured). The adjoints here are written out instead; the gathers
+loop over the stencil's first axis at run time and unroll the others
+(``node_weight``), which keeps the cold compile of a 3D float32 backward near
+30 s. The G2P adjoint is split in two: a parallel gather into the particle
+position and a serial scatter onto the grid, like the forward P2G (with no grid
+hook, straight onto the grid velocity's adjoint). The per-particle stress
 and the advection with its return mapping are written out too (``_stress_adjoint``,
 ``_advect_adjoint``, with the materials' ``kirchhoff_vjp`` and ``project_vjp``): the
 3D polar decomposition's derivative is one 3x3 solve, where Taichi's reverse mode
@@ -35,21 +38,28 @@ class MPMAdjointKernels(MPMKernels):
         return weights, slopes
 
     @ti.func
-    def node_weight(self, weights, slopes, offset):
-        """Weight of stencil node ``offset`` and its gradient [1/m] with respect to the particle position,
-        from ``axis_weights``. ``offset`` may be a run-time value, so the adjoints loop over the 3^d nodes
-        without unrolling them (unrolled, the 3D adjoints took 5 s each to compile, measured)."""
-        weight = 1.0
-        for k in ti.static(range(self.dim)):
-            weight *= weights[offset[k], k]
+    def node_weight(self, weights, slopes, i, rest):
+        """Stencil node offset (i, *rest), its weight and the weight's gradient [1/m] with respect to the
+        particle position, from ``axis_weights``. The adjoints loop over the first axis's ``i`` at run time
+        and unroll the other axes (``rest``, compile-time): unrolled over all 3^d nodes, the 3D float32
+        adjoints compiled for 30 s more; looped over all of them at run time (dynamic indexing of the
+        weights), they ran 1.5-2x slower (measured)."""
+        offset = ti.Vector.zero(ti.i32, self.dim)
+        offset[0] = i
+        w_first, s_first = weights[i, 0], slopes[i, 0]
+        w_rest = 1.0
+        for k in ti.static(range(1, self.dim)):
+            offset[k] = rest[k - 1]
+            w_rest *= weights[rest[k - 1], k]
         grad = ti.Vector.zero(float, self.dim)
-        for k in ti.static(range(self.dim)):
-            factor = self.inv_dx * slopes[offset[k], k]
-            for j in ti.static(range(self.dim)):
+        grad[0] = self.inv_dx * s_first * w_rest
+        for k in ti.static(range(1, self.dim)):
+            factor = self.inv_dx * w_first * slopes[rest[k - 1], k]
+            for j in ti.static(range(1, self.dim)):
                 if ti.static(j != k):
-                    factor *= weights[offset[j], j]
+                    factor *= weights[rest[j - 1], j]
             grad[k] = factor
-        return weight, grad
+        return offset, w_first * w_rest, grad
 
     @ti.kernel
     def _p2g_adjoint(self, b: ti.i32, start: ti.i32, end: ti.i32, src: ti.i32, g: ti.i32, control_share: float):
@@ -64,15 +74,16 @@ class MPMAdjointKernels(MPMKernels):
             g_mom = ti.Vector.zero(float, self.dim)
             g_affine = ti.Matrix.zero(float, self.dim, self.dim)
             g_x = ti.Vector.zero(float, self.dim)
-            for offset in ti.grouped(ti.ndrange(*([3] * self.dim))):
-                dpos = (offset - fx) * self.dx
-                weight, grad_w = self.node_weight(weights, slopes, offset)
-                g_node = self.grid_mom.grad[g, base + offset]
-                g_mass = self.grid_m.grad[g, base + offset]
-                g_mom += weight * g_node
-                g_affine += weight * g_node.outer_product(dpos)
-                g_x += grad_w * (g_node.dot(mom + affine @ dpos) + m_p * g_mass)
-                g_x -= weight * (affine.transpose() @ g_node)
+            for i in range(3):  # the first axis at run time, the others unrolled (``node_weight``)
+                for rest in ti.static(ti.grouped(ti.ndrange(*([3] * (self.dim - 1))))):
+                    offset, weight, grad_w = self.node_weight(weights, slopes, i, rest)
+                    dpos = (offset - fx) * self.dx
+                    g_node = self.grid_mom.grad[g, base + offset]
+                    g_mass = self.grid_m.grad[g, base + offset]
+                    g_mom += weight * g_node
+                    g_affine += weight * g_node.outer_product(dpos)
+                    g_x += grad_w * (g_node.dot(mom + affine @ dpos) + m_p * g_mass)
+            g_x -= affine.transpose() @ g_mom  # d dpos / dx = -I: sum_i w_i affine^T g_i, taken out of the loop
             # each particle owns these adjoint entries: plain adds, not atomics
             self.v.grad[src, p] = self.v.grad[src, p] + m_p * g_mom
             if ti.static(self.cfg.has_controls):
@@ -88,27 +99,43 @@ class MPMAdjointKernels(MPMKernels):
         self.grid_v.grad[g, I] += g_v
 
     @ti.kernel
-    def _g2p_adjoint(self, serial: ti.template(), src: ti.i32, dst: ti.i32, g: ti.i32, source: ti.template()):
-        """Adjoint of ``_g2p``: scatter the new velocity's and affine field's adjoints onto
-        ``gathered_grad`` (the adjoint of the velocities G2P read; ``_gathered_grad_to_source``
-        hands it on) and gather into the position. ``serial``: one thread with non-atomic adds
-        (faster than atomics on CPUs)."""
+    def _g2p_adjoint_scatter(self, serial: ti.template(), src: ti.i32, dst: ti.i32, g: ti.i32, out: ti.template()):
+        """Adjoint of G2P (``_g2p_advect``) with respect to the velocities it gathered: scatter the new velocity's and
+        affine field's adjoints onto ``out``: the grid velocity's adjoint (copy g) when G2P read the engine's
+        own grid, else ``gathered_grad`` (``_gathered_grad_to_source`` hands it to the last grid hook).
+        ``serial``: one thread with non-atomic adds (faster than atomics on CPUs), as in ``_p2g``."""
         ti.loop_config(serialize=serial)
+        for p in range(self.n_particles):
+            base, fx, w = self.stencil(self.x[src, p])
+            g_v = self.v.grad[dst, p]
+            g_C = (4.0 * self.inv_dx) * self.C.grad[dst, p]
+            for offset in ti.static(ti.grouped(ti.ndrange(*([3] * self.dim)))):
+                weight = self.stencil_weight(w, offset)
+                g_node = weight * (g_v + g_C @ (offset - fx))
+                if ti.static(len(out.shape) == self.dim):
+                    out[base + offset] += g_node
+                else:
+                    out[g, base + offset] += g_node
+
+    @ti.kernel
+    def _g2p_adjoint_position(self, src: ti.i32, dst: ti.i32, g: ti.i32, source: ti.template()):
+        """Adjoint of G2P (``_g2p_advect``) with respect to the particle position (weights and offsets move with it):
+        a parallel gather, each particle owning its entry."""
         for p in range(self.n_particles):
             base, fx, _w = self.stencil(self.x[src, p])
             weights, slopes = self.axis_weights(fx)
             g_v = self.v.grad[dst, p]
             g_C = (4.0 * self.inv_dx) * self.C.grad[dst, p]
             g_x = ti.Vector.zero(float, self.dim)
-            for offset in ti.grouped(ti.ndrange(*([3] * self.dim))):
-                dpos = offset - fx
-                weight, grad_w = self.node_weight(weights, slopes, offset)
-                node_v = source.velocity(g, base + offset)
-                g_node = g_v + g_C @ dpos
-                self.gathered_grad[base + offset] += weight * g_node
-                g_x += grad_w * node_v.dot(g_node)
-                g_x -= (weight * self.inv_dx) * (g_C.transpose() @ node_v)
-            self.x.grad[src, p] += g_x
+            new_v = ti.Vector.zero(float, self.dim)
+            for i in range(3):  # the first axis at run time, the others unrolled (``node_weight``)
+                for rest in ti.static(ti.grouped(ti.ndrange(*([3] * (self.dim - 1))))):
+                    offset, weight, grad_w = self.node_weight(weights, slopes, i, rest)
+                    node_v = source.velocity(g, base + offset)
+                    g_x += grad_w * node_v.dot(g_v + g_C @ (offset - fx))
+                    new_v += weight * node_v
+            # d dpos / dx = -I / dx: sum_i w_i g_C^T v_i / dx, taken out of the loop
+            self.x.grad[src, p] = self.x.grad[src, p] + g_x - self.inv_dx * (g_C.transpose() @ new_v)
 
     @ti.kernel
     def _gathered_grad_to_source(self, g: ti.i32, source: ti.template()):
@@ -142,7 +169,7 @@ class MPMAdjointKernels(MPMKernels):
     def _advect_adjoint(
         self, mat: ti.template(), b: ti.i32, start: ti.i32, end: ti.i32, src: ti.i32, dst: ti.i32, dt: float
     ):
-        """Adjoint of ``_advect`` (x' = x + dt v', F' = project((I + dt C') F)): from dL/dx', dL/dF' to
+        """Adjoint of the advection in ``_g2p_advect`` (x' = x + dt v', F' = project((I + dt C') F)): from dL/dx', dL/dF' to
         dL/dx, dL/dv', dL/dC', dL/dF and the body's dL/dE, dL/dnu (a plastic body's yield limit
         depends on mu)."""
         for p in range(start, end):  # each particle owns its adjoint entries: plain adds, not atomics
@@ -172,8 +199,12 @@ class MPMAdjointKernels(MPMKernels):
         for b in reversed(range(len(self.bodies))):
             lo, hi = self.ranges[b]
             self._advect_adjoint(self.materials[b], b, lo, hi, s, s + 1, dt)
-        self._g2p_adjoint(self._serial, s, s + 1, s, self._grid_out)
-        self._gathered_grad_to_source(s, self._grid_out)
+        self._g2p_adjoint_position(s, s + 1, s, self._grid_out)
+        if self._grid_out is self:  # no grid hook: straight onto the grid velocity's adjoint
+            self._g2p_adjoint_scatter(self._serial, s, s + 1, s, self.grid_v.grad)
+        else:
+            self._g2p_adjoint_scatter(self._serial, s, s + 1, s, self.gathered_grad)
+            self._gathered_grad_to_source(s, self._grid_out)
         for hook in reversed(self.grid_hooks):
             hook.apply_grad(s, s, s, dt)
         self._grid_update.grad(s, dt, self._mass_floor())

@@ -283,10 +283,24 @@ class MPMKernels:
                 self.grid_m[g, I] = 0.0
 
     @ti.kernel
-    def _g2p(self, src: ti.i32, dst: ti.i32, g: ti.i32, source: ti.template(), s: ti.i32):
-        """Gather velocity and affine field from the grid (``source.velocity``) into slot ``dst``; flag
-        NaN / inf for substep s (``mpm_watch``)."""
-        for p in range(self.n_particles):
+    def _g2p_advect(
+        self,
+        mat: ti.template(),
+        b: ti.i32,
+        start: ti.i32,
+        end: ti.i32,
+        src: ti.i32,
+        dst: ti.i32,
+        g: ti.i32,
+        source: ti.template(),
+        s: ti.i32,
+        dt: float,
+    ):
+        """G2P and advection of one body (parallel): gather velocity and affine field from the grid
+        (``source.velocity``) into slot ``dst``, flag NaN / inf for substep s (``mpm_watch``), move the
+        particles and update F with the material's return mapping. One kernel, not two: a launch and a
+        pass over v and C fewer per substep. Its adjoint is split (``mpm_adjoint``)."""
+        for p in range(start, end):
             xp = self.x[src, p]
             base, fx, w = self.stencil(xp)
             new_v = ti.Vector.zero(float, self.dim)
@@ -299,15 +313,11 @@ class MPMKernels:
                 new_C += (4.0 * self.inv_dx * weight) * node_v.outer_product(dpos)
             self.v[dst, p] = new_v
             self.C[dst, p] = new_C
-            self.watch.flag(p, s, xp, self.F[src, p], new_v, new_C)
-
-    @ti.kernel
-    def _advect(self, mat: ti.template(), b: ti.i32, start: ti.i32, end: ti.i32, src: ti.i32, dst: ti.i32, dt: float):
-        """Move particles and update F with the material's return mapping (per body, parallel)."""
-        for p in range(start, end):
+            F = self.F[src, p]
+            self.watch.flag(p, s, xp, F, new_v, new_C)
             mu, lam = self._lame(b)
-            self.x[dst, p] = self.x[src, p] + dt * self.v[dst, p]
-            F_trial = (ti.Matrix.identity(float, self.dim) + dt * self.C[dst, p]) @ self.F[src, p]
+            self.x[dst, p] = xp + dt * new_v
+            F_trial = (ti.Matrix.identity(float, self.dim) + dt * new_C) @ F
             self.F[dst, p] = mat.project(F_trial, mu, lam, self.yield_stress[b])
 
     @ti.kernel
@@ -392,10 +402,10 @@ class MPMKernels:
             hook.apply(src, g, s, dt)
 
     def post_coupling(self, src: int, dst: int, dt: float, s: int) -> None:
-        """Gather from the grid (G2P) for substep s, advect and update deformation per body."""
-        self._g2p(src, dst, self._grid_index(src), self._grid_out, s)
+        """Gather from the grid (G2P) for substep s, advect and update deformation, per body."""
+        g = self._grid_index(src)
         for b, (mat, (lo, hi)) in enumerate(zip(self.materials, self.ranges)):
-            self._advect(mat, b, lo, hi, src, dst, dt)
+            self._g2p_advect(mat, b, lo, hi, src, dst, g, self._grid_out, s, dt)
 
     def _substep(self, src: int, dst: int, dt: float, control_share: float, s: int) -> None:
         self.pre_coupling(src, s, dt, control_share)

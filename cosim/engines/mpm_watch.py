@@ -1,6 +1,6 @@
 """Health checks of the MPM particles on the device: what the coupled system's NaN, CFL and domain checks read.
 
-- In every substep's G2P (``MPMKernels._g2p``, a forward kernel with a hand-written adjoint) ``flag``
+- In every substep's G2P (``MPMKernels._g2p_advect``, a forward kernel with a hand-written adjoint) ``flag``
   looks at the values the gather holds anyway: a particle whose new v or C is NaN or inf lowers its
   body's first bad substep to s; one whose x or F (as substep s - 1 left them) is, to s - 1 (-1: the
   step started from it). An atomic min, written only by bad particles: nothing for healthy ones.
