@@ -306,11 +306,12 @@ class ForecastContact:
                 r = self.residual[g, p]
                 g_r = ti.Vector.zero(float, e.dim)
                 g_x = ti.Vector.zero(float, e.dim)
-                for offset in ti.grouped(ti.ndrange(*([3] * e.dim))):
-                    weight, grad_w = e.node_weight(weights, slopes, offset)
-                    g_corr = self.correction.grad[g, base + offset]
-                    g_r += weight * g_corr
-                    g_x += grad_w * g_corr.dot(r)
+                for i in range(3):  # the stencil as in the engine's adjoints (``node_weight``)
+                    for rest in ti.static(ti.grouped(ti.ndrange(*([3] * (e.dim - 1))))):
+                        offset, weight, grad_w = e.node_weight(weights, slopes, i, rest)
+                        g_corr = self.correction.grad[g, base + offset]
+                        g_r += weight * g_corr
+                        g_x += grad_w * g_corr.dot(r)
                 self.residual.grad[g, p] += e.mass_of(p) * g_r
                 e.x.grad[src, p] += e.mass_of(p) * g_x
 
@@ -325,11 +326,12 @@ class ForecastContact:
                 weights, slopes = e.axis_weights(fx)
                 g_v_init = self.v_init.grad[g, p]
                 g_x = ti.Vector.zero(float, e.dim)
-                for offset in ti.grouped(ti.ndrange(*([3] * e.dim))):
-                    node = base + offset
-                    weight, grad_w = e.node_weight(weights, slopes, offset)
-                    g_x += grad_w * g_v_init.dot(self.upstream.velocity(g, node))
-                    self.upstream.velocity_grad(g, node, weight * g_v_init)
+                for i in range(3):  # the stencil as in the engine's adjoints (``node_weight``)
+                    for rest in ti.static(ti.grouped(ti.ndrange(*([3] * (e.dim - 1))))):
+                        offset, weight, grad_w = e.node_weight(weights, slopes, i, rest)
+                        node = base + offset
+                        g_x += grad_w * g_v_init.dot(self.upstream.velocity(g, node))
+                        self.upstream.velocity_grad(g, node, weight * g_v_init)
                 e.x.grad[src, p] += g_x
 
     @ti.func

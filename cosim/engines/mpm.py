@@ -282,7 +282,7 @@ class MPMEngine(MPMAdjointKernels):
             source.write(boundaries[name])
 
     def _zero_grad(self) -> None:
-        fields = [self.x, self.v, self.C, self.F, self.grid_mom, self.grid_m, self.grid_v, self.affine, self.E, self.nu]
+        fields = [self.x, self.v, self.C, self.F, self.affine, self.E, self.nu]  # grids: per substep (_zero_grid_grad)
         for fld in fields + ([self.control] if self.control is not None else []):
             fld.grad.fill(0)
         for hook in self.grid_hooks + self.particle_hooks:

@@ -194,8 +194,20 @@ class MPMAdjointKernels(MPMKernels):
         self.E.grad[b] += mu_bar / (2.0 * (1.0 + nu)) + lam_bar * nu / q
         self.nu.grad[b] += -mu_bar * E / (2.0 * (1.0 + nu) ** 2) + lam_bar * E * (1.0 + 2.0 * nu * nu) / (q * q)
 
+    @ti.kernel
+    def _zero_grid_grad(self, g: ti.i32):
+        """Zero grid copy g's adjoints over its active nodes (``_bound_active``): only they are read and
+        written by its substep's adjoint, so no fill of all K grids."""
+        for I in ti.grouped(
+            ti.ndrange(*[(self.active_lo[g][k], self.active_hi[g][k]) for k in ti.static(range(self.dim))])
+        ):
+            self.grid_mom.grad[g, I] = ti.Vector.zero(float, self.dim)
+            self.grid_m.grad[g, I] = 0.0
+            self.grid_v.grad[g, I] = ti.Vector.zero(float, self.dim)
+
     def _substep_grad(self, s: int, dt: float, control_share: float) -> None:
         """Adjoint of substep s (slots s -> s + 1); its grid and stress copies are still held."""
+        self._zero_grid_grad(s)
         for b in reversed(range(len(self.bodies))):
             lo, hi = self.ranges[b]
             self._advect_adjoint(self.materials[b], b, lo, hi, s, s + 1, dt)
