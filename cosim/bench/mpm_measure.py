@@ -13,8 +13,8 @@ and adapts to both engine APIs it knows:
 The scene: an elastic block (E = 1e4 Pa, nu = 0.3, 1000 kg/m^3) of ``side``^dim particles
 sampled at 2 per axis per cell (8 per cell in 3D, 4 in 2D), centred in a unit box of ``cells``
 cells per axis and 0.1 m below its centre, falling under gravity, dt = 1e-4 s. Prints one JSON
-line: rates in M particle-substeps/s, memory in MiB and bytes per particle, times in s, and
-which ``cosim`` ran. With ``"profile": true`` (and Taichi's kernel profiler on, see
+line: rates in M particle-substeps/s (from the median macro step), memory in MiB and bytes per
+particle, times in s, and which ``cosim`` ran. With ``"profile": true`` (and Taichi's kernel profiler on, see
 ``cosim.runtime``) it also returns ms per substep of each kernel, forward and backward.
 """
 
@@ -124,23 +124,34 @@ def _profile_read(profile: bool, substeps: int) -> list:
 
 
 # ------------------------------------------------------------ measurements
+def _timed(fn) -> float:
+    """Seconds ``fn()`` takes, its kernels finished (Taichi's CPU launches are synchronous; ti.sync for a GPU)."""
+    import taichi as ti
+
+    t = time.perf_counter()
+    fn()
+    ti.sync()
+    return time.perf_counter() - t
+
+
+def _median(values: list) -> float:
+    return sorted(values)[len(values) // 2]
+
+
 def _time_forward(engine, substeps: int, macro_steps: int, profile: bool) -> tuple[float, float, list]:
-    """(compile s, forward s, kernel profile) of ``macro_steps`` x ``substeps`` substeps."""
-    t = time.perf_counter()
-    _forward(engine, 1)
-    engine.state()
-    compile_s = time.perf_counter() - t
+    """(compile s, median s of a macro step, kernel profile) of ``macro_steps`` x ``substeps`` substeps.
+    The median of the macro steps, not their mean: a shared machine's bursts of load hit a few steps of a
+    run, and on this kind of machine a whole short run's mean varied by up to 2x (measured)."""
+    compile_s = _timed(lambda: (_forward(engine, 1), engine.state()))
     _profile_start(profile)
-    t = time.perf_counter()
-    for _ in range(macro_steps):
-        _forward(engine, substeps)
-    engine.state()  # synchronise
-    fwd_s = time.perf_counter() - t
-    return compile_s, fwd_s, _profile_read(profile, substeps * macro_steps)
+    step_s = [_timed(lambda: _forward(engine, substeps)) for _ in range(macro_steps)]
+    return compile_s, _median(step_s), _profile_read(profile, substeps * macro_steps)
 
 
 def _time_gradient(engine, substeps: int, macro_steps: int, profile: bool) -> tuple[float, float, float, list]:
-    """(compile s, recorded forward s, backward s, backward kernel profile) of a seeded rollout."""
+    """(compile s, median s of a recorded macro step, median s of a macro step's backward with its
+    checkpoint recompute, backward kernel profile) of a seeded rollout. The last step's backward, which
+    needs no recompute, is left out of the median when there are more."""
     import numpy as np
 
     zero = {k: np.zeros_like(v) for k, v in engine.state().items()}
@@ -149,17 +160,17 @@ def _time_gradient(engine, substeps: int, macro_steps: int, profile: bool) -> tu
     rec0 = _record(engine, substeps)
     _vjp(engine, _forget(rec0), seed)  # compiles the recompute path too
     compile_s = time.perf_counter() - t
-    t = time.perf_counter()
-    records = [_record(engine, substeps) for _ in range(macro_steps)]
-    engine.state()
-    tape_s = time.perf_counter() - t
+    records, tape_s = [], []
+    for _ in range(macro_steps):
+        tape_s.append(_timed(lambda: records.append(_record(engine, substeps))))
     _profile_start(profile)
-    t = time.perf_counter()
-    g = seed
+    g, bwd_s = seed, []
     for rec in reversed(records):
+        t = time.perf_counter()
         g = _vjp(engine, rec, g)
-    bwd_s = time.perf_counter() - t
-    return compile_s, tape_s, bwd_s, _profile_read(profile, substeps * macro_steps)
+        bwd_s.append(time.perf_counter() - t)
+    recomputed = bwd_s[1:] or bwd_s
+    return compile_s, _median(tape_s), _median(recomputed), _profile_read(profile, substeps * macro_steps)
 
 
 def measure(
@@ -176,7 +187,7 @@ def measure(
     fwd_peak = _peak_mib()
     c_grad, tape_s, bwd_s, prof_bwd = _time_gradient(_engine(dim, cells, pts, substeps), substeps, macro_steps, profile)
     peak = _peak_mib()
-    work = n * substeps * macro_steps
+    work = n * substeps  # per macro step: the times are medians of a macro step
     return {
         "dim": dim,
         "precision": precision,
