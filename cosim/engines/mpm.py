@@ -20,7 +20,7 @@ import numpy as np
 import taichi as ti
 
 from cosim.engines.mpm_adjoint import MPMAdjointKernels
-from cosim.engines.mpm_kernels import STATE_KEYS, MPMConfig, ParticleBody
+from cosim.engines.mpm_inputs import STATE_KEYS, MPMConfig, ParticleBody
 from cosim.engines.mpm_watch import BodyHealth
 from cosim.engines.slot_state import SlotState
 
@@ -94,6 +94,7 @@ class MPMEngine(MPMAdjointKernels):
         upstream = self._grid_out
         self.grid_hooks.append(hook)
         self._grid_out = hook
+        self._activate_whole_grid()
         return upstream
 
     def attach_particle_hook(self, hook) -> None:

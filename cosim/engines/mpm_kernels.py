@@ -23,59 +23,13 @@ One substep, split into the phases a coupler drives (see DESIGN.md):
   F, apply the material's return mapping.
 """
 
-import math
-from dataclasses import dataclass
-
 import numpy as np
 import taichi as ti
 
 from cosim.engines.arch import current_choices
 from cosim.engines.materials import MATERIALS
+from cosim.engines.mpm_inputs import MPMConfig, ParticleBody
 from cosim.engines.mpm_watch import ParticleWatch
-
-
-@dataclass
-class ParticleBody:
-    """One soft body: its particles and material. Arrays are (n, dim)."""
-
-    name: str
-    material: str  # 'elastic' | 'plastic' | 'liquid'
-    E: float  # Young's modulus [Pa]
-    nu: float  # Poisson's ratio [-]
-    density: float  # [kg/m^3]
-    particle_volume: float  # [m^d] volume each particle stands for
-    positions: np.ndarray
-    velocities: np.ndarray
-    yield_stress: float = math.inf  # [Pa], plastic only
-    viscosity: float = 0.0  # [Pa s], liquid only
-    deformation: np.ndarray | None = None  # (n, d, d) initial F, default identity
-
-    @property
-    def n(self) -> int:
-        return len(self.positions)
-
-    @property
-    def particle_mass(self) -> float:
-        return self.density * self.particle_volume
-
-
-@dataclass
-class MPMConfig:
-    """Grid, walls and gravity. ``cells`` per axis; dx [m]; gravity [m/s^2]."""
-
-    dim: int
-    cells: tuple[int, ...]
-    dx: float
-    gravity: tuple[float, ...]
-    wall: str = "slip"  # 'slip' | 'sticky' | 'none'
-    wall_cells: int = 3
-    requires_grad: bool = False
-    grad_substeps: int = 1  # gradient mode: substeps per macro step (slots = this + 1)
-    has_controls: bool = False
-    serial_p2g: bool | None = None  # single-threaded non-atomic scatter; None: by the arch (cosim.engines.arch)
-
-
-STATE_KEYS = ("x", "v", "C", "F")
 
 
 @ti.data_oriented
@@ -210,23 +164,23 @@ class MPMKernels:
         return E / (2.0 * (1.0 + nu)), E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
 
     @ti.kernel
-    def _bound_active(self, src: ti.i32, g: ti.i32, tight: ti.template()):
-        """The box of nodes that P2G from slot src touches, into grid copy g's ``active_lo``/``active_hi``
-        (``tight``), or the whole grid (a grid hook reads and writes every node). The grid passes loop over
-        this box only: a body usually covers a small part of the domain (a 64³ grid holds 274k nodes, the
-        benchmark's 30k-particle block touches 5k)."""
-        if ti.static(tight):
-            self.active_lo[g] = ti.Vector(self.nodes)
-            self.active_hi[g] = ti.Vector.zero(ti.i32, self.dim)
-            # one thread, plain min / max: contended atomics from two threads took 5x longer (measured)
-            ti.loop_config(serialize=True)
-            for p in range(self.n_particles):
-                base, _fx, _w = self.stencil(self.x[src, p])
-                self.active_lo[g] = ti.min(self.active_lo[g], base)
-                self.active_hi[g] = ti.max(self.active_hi[g], base + 3)
-        else:
-            self.active_lo[g] = ti.Vector.zero(ti.i32, self.dim)
-            self.active_hi[g] = ti.Vector(self.nodes)
+    def _bound_active(self, src: ti.i32, g: ti.i32):
+        """The box of nodes that P2G from slot src touches, into grid copy g's ``active_lo``/``active_hi``.
+        The grid passes loop over this box only: a body usually covers a small part of the domain (the
+        benchmark's 30k-particle block touches ~7k of a 64³ grid's 274k nodes). One thread with plain
+        min / max: contended atomics from two threads took 5x longer (measured)."""
+        self.active_lo[g] = ti.Vector(self.nodes)
+        self.active_hi[g] = ti.Vector.zero(ti.i32, self.dim)
+        ti.loop_config(serialize=True)
+        for p in range(self.n_particles):
+            base, _fx, _w = self.stencil(self.x[src, p])
+            self.active_lo[g] = ti.min(self.active_lo[g], base)
+            self.active_hi[g] = ti.max(self.active_hi[g], base + 3)
+
+    def _activate_whole_grid(self) -> None:
+        """Every grid copy's box made the whole grid, for good: a grid hook reads and writes every node."""
+        self.active_lo.fill(0)
+        self.active_hi.from_numpy(np.tile(np.array(self.nodes, dtype=np.int32), (self.n_grids, 1)))
 
     @ti.kernel
     def _clear_grid(self, g: ti.i32):
@@ -414,7 +368,8 @@ class MPMKernels:
         for prepare in self.substep_preparers:
             prepare(src, s)
         g = self._grid_index(src)
-        self._bound_active(src, g, not self.grid_hooks)
+        if not self.grid_hooks:  # with one, the box is the whole grid (``_activate_whole_grid``)
+            self._bound_active(src, g)
         if not self._fused_clear():  # else grid_update clears it
             self._clear_grid(g)
         for hook in self.particle_hooks:

@@ -12,7 +12,7 @@ from collections.abc import Iterator, Mapping
 
 import numpy as np
 
-from cosim.engines.mpm_kernels import STATE_KEYS
+from cosim.engines.mpm_inputs import STATE_KEYS
 
 
 class SlotState(Mapping):

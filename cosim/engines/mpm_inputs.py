@@ -1,0 +1,51 @@
+"""What an MPM engine is built from: its soft bodies (``ParticleBody``), grid and walls (``MPMConfig``),
+and the keys of the particle state it exchanges (``STATE_KEYS``)."""
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass
+class ParticleBody:
+    """One soft body: its particles and material. Arrays are (n, dim)."""
+
+    name: str
+    material: str  # 'elastic' | 'plastic' | 'liquid'
+    E: float  # Young's modulus [Pa]
+    nu: float  # Poisson's ratio [-]
+    density: float  # [kg/m^3]
+    particle_volume: float  # [m^d] volume each particle stands for
+    positions: np.ndarray
+    velocities: np.ndarray
+    yield_stress: float = math.inf  # [Pa], plastic only
+    viscosity: float = 0.0  # [Pa s], liquid only
+    deformation: np.ndarray | None = None  # (n, d, d) initial F, default identity
+
+    @property
+    def n(self) -> int:
+        return len(self.positions)
+
+    @property
+    def particle_mass(self) -> float:
+        return self.density * self.particle_volume
+
+
+@dataclass
+class MPMConfig:
+    """Grid, walls and gravity. ``cells`` per axis; dx [m]; gravity [m/s^2]."""
+
+    dim: int
+    cells: tuple[int, ...]
+    dx: float
+    gravity: tuple[float, ...]
+    wall: str = "slip"  # 'slip' | 'sticky' | 'none'
+    wall_cells: int = 3
+    requires_grad: bool = False
+    grad_substeps: int = 1  # gradient mode: substeps per macro step (slots = this + 1)
+    has_controls: bool = False
+    serial_p2g: bool | None = None  # single-threaded non-atomic scatter; None: by the arch (cosim.engines.arch)
+
+
+STATE_KEYS = ("x", "v", "C", "F")
