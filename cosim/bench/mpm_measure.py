@@ -20,6 +20,7 @@ particle, times in s, and which ``cosim`` ran. With ``"profile": true`` (and Tai
 
 import json
 import resource
+import statistics
 import sys
 import time
 from pathlib import Path
@@ -134,10 +135,6 @@ def _timed(fn) -> float:
     return time.perf_counter() - t
 
 
-def _median(values: list) -> float:
-    return sorted(values)[len(values) // 2]
-
-
 def _time_forward(engine, substeps: int, macro_steps: int, profile: bool) -> tuple[float, float, list]:
     """(compile s, median s of a macro step, kernel profile) of ``macro_steps`` x ``substeps`` substeps.
     The median of the macro steps, not their mean: a shared machine's bursts of load hit a few steps of a
@@ -145,7 +142,7 @@ def _time_forward(engine, substeps: int, macro_steps: int, profile: bool) -> tup
     compile_s = _timed(lambda: (_forward(engine, 1), engine.state()))
     _profile_start(profile)
     step_s = [_timed(lambda: _forward(engine, substeps)) for _ in range(macro_steps)]
-    return compile_s, _median(step_s), _profile_read(profile, substeps * macro_steps)
+    return compile_s, statistics.median(step_s), _profile_read(profile, substeps * macro_steps)
 
 
 def _time_gradient(engine, substeps: int, macro_steps: int, profile: bool) -> tuple[float, float, float, list]:
@@ -170,7 +167,12 @@ def _time_gradient(engine, substeps: int, macro_steps: int, profile: bool) -> tu
         g = _vjp(engine, rec, g)
         bwd_s.append(time.perf_counter() - t)
     recomputed = bwd_s[1:] or bwd_s
-    return compile_s, _median(tape_s), _median(recomputed), _profile_read(profile, substeps * macro_steps)
+    return (
+        compile_s,
+        statistics.median(tape_s),
+        statistics.median(recomputed),
+        _profile_read(profile, substeps * macro_steps),
+    )
 
 
 def measure(
