@@ -105,7 +105,7 @@ class ClothBoundary:
         # each traced particle's blended contact frame per substep slot (``_blend``)
         self.blend_width = BLEND * self.band
         self.tracer.cutoff = CUTOFF * self.blend_width
-        S, N = self.slots, engine.n_particles
+        S, N = self.slots, engine.capacity
         self.frame_d = ti.field(float, shape=(S, N), needs_grad=grad)
         self.frame_n = ti.Vector.field(3, float, shape=(S, N), needs_grad=grad)
         self.frame_x = ti.Vector.field(3, float, shape=(S, N), needs_grad=grad)
@@ -158,7 +158,7 @@ class ClothBoundary:
     def _blend(self, src: ti.i32, slot: ti.i32):
         """Each traced particle's contact frame for this substep (see the module docstring)."""
         t = self.tracer
-        for p in range(self.engine.n_particles):
+        for p in range(self.engine.count[None]):
             f = t.face_s[slot, p]
             if f >= 0:
                 x = self.engine.x[src, p]

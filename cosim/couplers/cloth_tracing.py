@@ -66,7 +66,7 @@ class PenetrationTracer:
         self.enabled = ti.field(ti.i32, shape=())  # 0: every particle stays legal (comparisons only)
         self.enabled[None] = int(enabled)
         self.slots = slots
-        F, N = query.n_faces, engine.n_particles
+        F, N = query.n_faces, engine.capacity
         S, M = topology.star.shape[2], topology.max_neighbours
         self.S, self.M = S, M
         self.edge_face = _int_field((F, 3), topology.edge_face)
@@ -104,10 +104,11 @@ class PenetrationTracer:
         fresh = {"face": np.full(N, -1, np.int32), "side": np.zeros(N, np.int32), "inside": np.zeros(N, np.int32)}
         tracking = fresh if tracking is None else tracking
         for key in TRACKING_KEYS:
-            getattr(self, key).from_numpy(np.ascontiguousarray(tracking[key], dtype=np.int32))
+            getattr(self, key).from_numpy(self.engine.padded(np.asarray(tracking[key], dtype=np.int32)))
 
     def state(self) -> dict[str, np.ndarray]:
-        return {key: getattr(self, key).to_numpy().astype(np.int32) for key in TRACKING_KEYS}
+        N = self.engine.n_particles
+        return {key: getattr(self, key).to_numpy()[:N].astype(np.int32) for key in TRACKING_KEYS}
 
     def mesh_moved(self, verts: np.ndarray) -> None:
         """The mesh (already in ``query``) has new positions ``verts``: refresh its normals and box."""
@@ -219,8 +220,8 @@ class PenetrationTracer:
         e = self.engine
         band = self.query.band
         for i in ti.static(range(2)):  # no error yet (counts 0, first particles past the last)
-            self.errors[2 * i], self.errors[2 * i + 1] = 0, e.n_particles
-        for p in range(e.n_particles):
+            self.errors[2 * i], self.errors[2 * i + 1] = 0, e.count[None]
+        for p in range(e.count[None]):
             x = e.x[src, p]
             if not first:
                 x0 = self.last_x[p]

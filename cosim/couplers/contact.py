@@ -115,7 +115,7 @@ class ParticlePenalty:
     @ti.kernel
     def _apply(self, src: ti.i32, g: ti.i32, s: ti.i32, dt: float):
         e = self.engine
-        for p in range(e.n_particles):
+        for p in range(e.count[None]):
             x, v = e.x[src, p], e.v[src, p]
             m = e.mass_of(p)
             dp_total = ti.Vector.zero(float, e.dim)
@@ -268,7 +268,7 @@ class ForecastContact:
         constrained particles' W M_p r. One kernel (atomic adds only for constrained particles):
         each launch costs ~50 us on this CPU, as much as the work here."""
         e = self.engine
-        for p in range(e.n_particles):
+        for p in range(e.count[None]):
             x = e.x[src, p]
             constrained = self._within_threshold(s, x, p)
             base, _fx, w = e.stencil(x)
@@ -289,7 +289,7 @@ class ForecastContact:
         """The residual r = v_init - BC_p(v_init) of ``_forecast`` alone: the part of the forecast
         whose adjoint Taichi derives (the stencil transfers around it have hand-written ones)."""
         e = self.engine
-        for p in range(e.n_particles):
+        for p in range(e.count[None]):
             if self.constrained[g, p]:
                 x = e.x[src, p]
                 self.residual[g, p] = self.v_init[g, p] - self._constrain(s, x, p, self.v_init[g, p], e.mass_of(p), dt)
@@ -299,7 +299,7 @@ class ForecastContact:
         """Adjoint of ``_forecast``'s correction scatter (correction_i += w_i m_p r): the correction's
         adjoint gathered into r's and x's, per constrained particle."""
         e = self.engine
-        for p in range(e.n_particles):
+        for p in range(e.count[None]):
             if self.constrained[g, p]:
                 base, fx, _w = e.stencil(e.x[src, p])
                 weights, slopes = e.axis_weights(fx)
@@ -320,7 +320,7 @@ class ForecastContact:
         """Adjoint of ``_forecast``'s look-ahead gather (v_init = sum_i w_i v_hat_i): v_init's adjoint
         scattered onto the upstream velocity's and gathered into x's, per constrained particle."""
         e = self.engine
-        for p in range(e.n_particles):
+        for p in range(e.count[None]):
             if self.constrained[g, p]:
                 base, fx, _w = e.stencil(e.x[src, p])
                 weights, slopes = e.axis_weights(fx)
@@ -372,7 +372,7 @@ class ForecastContact:
         """(|W^T v_hat - v_tgt|^2, |W^T v_g - v_tgt|^2) summed over constrained particles."""
         e = self.engine
         before, after = 0.0, 0.0
-        for p in range(e.n_particles):
+        for p in range(e.count[None]):
             if self.constrained[g, p]:
                 base, _fx, w = e.stencil(e.x[src, p])
                 v = ti.Vector.zero(float, e.dim)

@@ -263,7 +263,7 @@ class MPMEngine(MPMAdjointKernels):
             "nu": self.nu.grad.to_numpy().astype(np.float64),
         }
         if self.control is not None:
-            out["impulse"] = self.control.grad.to_numpy().astype(np.float64)
+            out["impulse"] = self.control.grad.to_numpy()[: self.n_particles].astype(np.float64)
         return out
 
     def replay(self, start: dict[str, np.ndarray], records: list[MPMRecord]) -> list[dict[str, np.ndarray]]:
@@ -297,7 +297,7 @@ class MPMEngine(MPMAdjointKernels):
                 raise ValueError("this engine was built without controls")
             return
         full = np.zeros((self.n_particles, self.dim)) if impulse is None else impulse
-        self.control.from_numpy(self._real(full))
+        self.control.from_numpy(self.padded(self._real(full)))
 
     # ------------------------------------------------------------ slots
     def _rotation(self, substeps: int) -> list[tuple[int, int]]:

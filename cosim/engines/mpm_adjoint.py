@@ -105,7 +105,7 @@ class MPMAdjointKernels(MPMKernels):
         own grid, else ``gathered_grad`` (``_gathered_grad_to_source`` hands it to the last grid hook).
         ``serial``: one thread with non-atomic adds (faster than atomics on CPUs), as in ``_p2g``."""
         ti.loop_config(serialize=serial)
-        for p in range(self.n_particles):
+        for p in range(self.count[None]):
             base, fx, w = self.stencil(self.x[src, p])
             g_v = self.v.grad[dst, p]
             g_C = (4.0 * self.inv_dx) * self.C.grad[dst, p]
@@ -121,7 +121,7 @@ class MPMAdjointKernels(MPMKernels):
     def _g2p_adjoint_position(self, src: ti.i32, dst: ti.i32, g: ti.i32, source: ti.template()):
         """Adjoint of G2P (``_g2p_advect``) with respect to the particle position (weights and offsets move with it):
         a parallel gather, each particle owning its entry."""
-        for p in range(self.n_particles):
+        for p in range(self.count[None]):
             base, fx, _w = self.stencil(self.x[src, p])
             weights, slopes = self.axis_weights(fx)
             g_v = self.v.grad[dst, p]

@@ -49,3 +49,18 @@ class MPMConfig:
 
 
 STATE_KEYS = ("x", "v", "C", "F")
+
+MIN_CAPACITY = 256  # the smallest particle capacity
+CAPACITY_BUCKETS = 4  # capacities per doubling of the particle count
+
+
+def particle_capacity(n: int) -> int:
+    """How many particles an engine's particle fields hold for ``n`` particles: ``n`` rounded up to
+    ``MIN_CAPACITY`` or to one of ``CAPACITY_BUCKETS`` sizes per doubling (2^k times 1, 1.25, 1.5,
+    1.75), at most 25% spare. Taichi's kernel cache keys include field shapes, so scenes whose
+    particle counts share a bucket (and that match otherwise) reuse each other's compiled kernels;
+    kernels loop over the count (``MPMKernels.count``), never over the capacity."""
+    if n <= MIN_CAPACITY:
+        return MIN_CAPACITY
+    step = (1 << ((n - 1).bit_length() - 1)) // CAPACITY_BUCKETS
+    return -(-n // step) * step

@@ -28,7 +28,7 @@ import taichi as ti
 
 from cosim.engines.arch import current_choices
 from cosim.engines.materials import MATERIALS
-from cosim.engines.mpm_inputs import MPMConfig, ParticleBody
+from cosim.engines.mpm_inputs import MPMConfig, ParticleBody, particle_capacity
 from cosim.engines.mpm_watch import ParticleWatch
 
 
@@ -42,7 +42,11 @@ class MPMKernels:
         self.cfg = config
         self.dim = d = config.dim
         self.bodies = bodies
-        self.n_particles = n = sum(b.n for b in bodies)
+        self.n_particles = sum(b.n for b in bodies)
+        # particle fields hold ``capacity`` particles, kernels loop over ``count``: kernels compiled for
+        # one particle count serve every count of its bucket (``particle_capacity``)
+        self.capacity = n = particle_capacity(self.n_particles)
+        self.count = ti.field(ti.i32, shape=())
         self.dx = float(config.dx)
         self.inv_dx = 1.0 / self.dx
         starts = np.cumsum([0] + [b.n for b in bodies])
@@ -94,8 +98,11 @@ class MPMKernels:
         self.p_vol.from_numpy(self._real([b.particle_volume for b in bodies]))
         self.p_radius.from_numpy(self._real([0.5 * b.particle_volume ** (1.0 / d) for b in bodies]))
         self.p_liquid.from_numpy(np.array([b.material == "liquid" for b in bodies], dtype=np.int32))
+        self.count[None] = self.n_particles
         self.mass = np.concatenate([np.full(b.n, b.particle_mass) for b in bodies])
-        self.body_id.from_numpy(np.concatenate([np.full(b.n, i, dtype=np.int32) for i, b in enumerate(bodies)]))
+        self.body_id.from_numpy(
+            self.padded(np.concatenate([np.full(b.n, i, dtype=np.int32) for i, b in enumerate(bodies)]))
+        )
         self._serial = current_choices().serial_scatter if config.serial_p2g is None else bool(config.serial_p2g)
         self.grid_hooks: list = []  # contact models rewriting grid velocities, in order
         self.particle_hooks: list = []  # contact models adding momentum in P2G
@@ -112,7 +119,7 @@ class MPMKernels:
             {
                 "x": np.concatenate([b.positions for b in bodies]),
                 "v": np.concatenate([b.velocities for b in bodies]),
-                "C": np.zeros((n, d, d)),
+                "C": np.zeros((self.n_particles, d, d)),
                 "F": np.concatenate(
                     [np.broadcast_to(eye, (b.n, d, d)) if b.deformation is None else b.deformation for b in bodies]
                 ),
@@ -122,6 +129,12 @@ class MPMKernels:
     def _real(self, values) -> np.ndarray:
         """Host array in the engine's precision (float32 or float64)."""
         return np.asarray(values, dtype=self.real)
+
+    def padded(self, per_particle: np.ndarray) -> np.ndarray:
+        """A per-particle host array (n_particles, ...) padded with zeros to the capacity, for ``from_numpy``."""
+        out = np.zeros((self.capacity, *per_particle.shape[1:]), dtype=per_particle.dtype)
+        out[: self.n_particles] = per_particle
+        return out
 
     # ------------------------------------------------------------------ kernels
     @ti.func
@@ -172,7 +185,7 @@ class MPMKernels:
         self.active_lo[g] = ti.Vector(self.nodes)
         self.active_hi[g] = ti.Vector.zero(ti.i32, self.dim)
         ti.loop_config(serialize=True)
-        for p in range(self.n_particles):
+        for p in range(self.count[None]):
             base, _fx, _w = self.stencil(self.x[src, p])
             self.active_lo[g] = ti.min(self.active_lo[g], base)
             self.active_hi[g] = ti.max(self.active_hi[g], base + 3)
@@ -304,7 +317,7 @@ class MPMKernels:
 
     @ti.kernel
     def _copy_slot(self, src: ti.i32, dst: ti.i32):
-        for p in range(self.n_particles):
+        for p in range(self.count[None]):
             self.x[dst, p] = self.x[src, p]
             self.v[dst, p] = self.v[src, p]
             self.C[dst, p] = self.C[src, p]
@@ -313,7 +326,7 @@ class MPMKernels:
     @ti.kernel
     def _read_slot(self, fld: ti.template(), slot: ti.i32, out: ti.types.ndarray()):
         """Copy one slot of a particle field (or its adjoint) into out (n, d) or (n, d, d)."""
-        for p in range(self.n_particles):
+        for p in range(self.count[None]):
             if ti.static(fld.m == 1):
                 for i in ti.static(range(fld.n)):
                     out[p, i] = fld[slot, p][i]
@@ -323,7 +336,7 @@ class MPMKernels:
 
     @ti.kernel
     def _write_slot(self, fld: ti.template(), slot: ti.i32, src: ti.types.ndarray()):
-        for p in range(self.n_particles):
+        for p in range(self.count[None]):
             if ti.static(fld.m == 1):
                 for i in ti.static(range(fld.n)):
                     fld[slot, p][i] = src[p, i]
