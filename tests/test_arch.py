@@ -83,3 +83,46 @@ def test_float32_gradients_get_a_taichi_whose_adjoints_are_right(tmp_path):
     res = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120, check=True)
     grad = [float(v) for v in res.stdout.split()[-4:]]
     assert grad == pytest.approx([3.3, 1.1, 1.1, 1.1], rel=1e-6), res.stdout
+
+
+def test_short_loops_run_on_one_thread_and_give_the_parallel_results(monkeypatch):
+    """A tiny scene's particle and grid loops are serial on a CPU (a thread-pool dispatch costs more than
+    their work); forced parallel, the same scene gives the same loss and gradients (float64, atomic adds
+    in another order: 1e-9)."""
+    from conftest import make_scene
+
+    from cosim.adjoint.objective import Objective
+    from cosim.engines import arch
+    from cosim.scene.build import build_system
+
+    scene = make_scene(
+        steps=3,
+        rigid={
+            "bodies": [
+                {
+                    "name": "plate",
+                    "shape": {"type": "box", "size": [0.3, 0.04]},
+                    "position": [0.5, 0.36],
+                    "motion": {"type": "constant", "velocity": [0.0, 0.5]},
+                }
+            ]
+        },
+        controls=[{"body": "block", "impulse": [0.0, 0.0]}],
+        contact={"model": "forecast", "friction": 0.2},
+        loss={"type": "weighted_positions", "body": "block"},
+    )
+    serial = Objective(build_system(scene, requires_grad=True))
+    assert serial.system.mpm.serial_particle_loops and serial.system.mpm.serial_grid_loops
+    monkeypatch.setattr(arch, "PARALLEL_MIN_PARTICLES", 0)
+    monkeypatch.setattr(arch, "PARALLEL_MIN_NODES", 0)
+    parallel = Objective(build_system(scene, requires_grad=True))
+    assert not (parallel.system.mpm.serial_particle_loops or parallel.system.mpm.serial_grid_loops)
+    assert not arch.choices_for("cuda").serial_particles(1) and not arch.choices_for("cuda").serial_nodes(1)
+    params = serial.initial_params()
+    (value_s, grads_s), (value_p, grads_p) = (o.evaluate(params, grad=True) for o in (serial, parallel))
+    reactions = serial.system.last.outputs["reactions"]["kinematic"]["impulse"]
+    assert np.abs(reactions).sum() > 0  # the plate pushed the block: the contact kernels ran
+    assert value_p == pytest.approx(value_s, rel=1e-9)
+    for key in grads_s:
+        scale = np.abs(grads_s[key]).max()
+        assert scale > 0 and np.abs(grads_p[key] - grads_s[key]).max() <= 1e-9 * scale, key

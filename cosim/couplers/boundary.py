@@ -30,9 +30,10 @@ import taichi as ti
 
 from cosim.couplers.sdf import SDFField, SDFGrid
 from cosim.engines.contract import BOUNDARY_KEYS, REACTION_KEYS
+from cosim.engines.data_oriented import data_oriented
 
 
-@ti.data_oriented
+@data_oriented
 class RigidBoundaries:
     """Rigid bodies described by body-frame SDFs, moving with per-substep poses and twists.
 
@@ -114,6 +115,7 @@ class RigidBoundaries:
         omega: ti.types.ndarray(),
         K: ti.i32,
     ):
+        ti.loop_config(serialize=True)  # substeps x bodies: far less work than a thread-pool dispatch (arch)
         for s, b in ti.ndrange(K, self.n):
             for i in ti.static(range(self.dim)):
                 self.pos[s, b][i] = pos[s, b, i]
@@ -127,6 +129,7 @@ class RigidBoundaries:
 
     @ti.kernel
     def _read_reactions(self, impulse: ti.types.ndarray(), angular: ti.types.ndarray(), K: ti.i32):
+        ti.loop_config(serialize=True)  # as in _write_states
         for s, b in ti.ndrange(K, self.n):
             for i in ti.static(range(self.dim)):
                 impulse[s, b, i] = self.impulse[s, b][i]

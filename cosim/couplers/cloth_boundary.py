@@ -49,6 +49,7 @@ import taichi as ti
 from cosim.couplers.cloth_mesh_query import INTERIOR, MeshQuery, closest_point_on_triangle
 from cosim.couplers.cloth_topology import build_topology
 from cosim.couplers.cloth_tracing import CANDIDATES, PenetrationTracer
+from cosim.engines.data_oriented import data_oriented
 
 FAR = 1e30  # [m] the distance reported where no face is within the band
 TINY = 1e-30  # [m^2] keeps |x - c| differentiable at x = c
@@ -56,7 +57,7 @@ BLEND = 1e-3  # blend width tau of the candidate faces, in bands
 CUTOFF = 30.0  # candidates lie within CUTOFF tau of the nearest: a face entering there weighs e^-30
 
 
-@ti.data_oriented
+@data_oriented
 class ClothBoundary:
     """The cloth ``faces`` (F, 3) with rest vertices ``verts`` (V, 3) [m] as a boundary of ``engine`` (3D).
 
@@ -158,6 +159,7 @@ class ClothBoundary:
     def _blend(self, src: ti.i32, slot: ti.i32):
         """Each traced particle's contact frame for this substep (see the module docstring)."""
         t = self.tracer
+        ti.loop_config(serialize=self.engine.serial_particle_loops)
         for p in range(self.engine.count[None]):
             f = t.face_s[slot, p]
             if f >= 0:
@@ -315,6 +317,7 @@ class ClothBoundary:
     @ti.kernel
     def _query_nodes(self):
         e = self.engine
+        ti.loop_config(serialize=e.serial_grid_loops)
         for I in ti.grouped(self.node_face):
             f, _d2, _w, _r = self.query.nearest(ti.cast(I, float) * e.dx)
             self.node_face[I] = f

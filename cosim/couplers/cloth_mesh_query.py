@@ -19,6 +19,8 @@ each region (contact models call it with a fixed face inside differentiated kern
 import numpy as np
 import taichi as ti
 
+from cosim.engines.data_oriented import data_oriented
+
 PRIMES = (73856093, 19349663, 83492791)  # spatial-hash multipliers (Teschner et al. 2003)
 
 # region codes of closest_point_on_triangle: 0 the face's interior, 1 + k corner k, 4 + k edge k
@@ -93,7 +95,7 @@ def cell_keys(cells: np.ndarray, table: int) -> np.ndarray:
     return ((c[:, 0] * PRIMES[0]) ^ (c[:, 1] * PRIMES[1]) ^ (c[:, 2] * PRIMES[2])) & (table - 1)
 
 
-@ti.data_oriented
+@data_oriented
 class MeshQuery:
     """Vertices ``verts`` (V, 3) [m] (with adjoints when ``requires_grad``), ``faces`` (F, 3) and the face
     hash; ``nearest(x)`` gives the nearest face within ``band`` [m] of x, or -1."""

@@ -46,6 +46,7 @@ import taichi as ti
 
 from cosim.couplers.cloth_mesh_query import CORNER, EDGE, MeshQuery, closest_point_on_triangle
 from cosim.couplers.cloth_topology import ClothTopology
+from cosim.engines.data_oriented import data_oriented
 from cosim.errors import SimulationError
 
 TRACKING_KEYS = ("face", "side", "inside")
@@ -56,7 +57,7 @@ class ClothTracingError(SimulationError):
     """Tracing lost a particle: it crossed or may have crossed the sheet unseen."""
 
 
-@ti.data_oriented
+@data_oriented
 class PenetrationTracer:
     """Tracing state of ``engine``'s particles against the mesh of ``query`` (see the module docstring)."""
 
@@ -221,6 +222,7 @@ class PenetrationTracer:
         band = self.query.band
         for i in ti.static(range(2)):  # no error yet (counts 0, first particles past the last)
             self.errors[2 * i], self.errors[2 * i + 1] = 0, e.count[None]
+        ti.loop_config(serialize=e.serial_particle_loops)
         for p in range(e.count[None]):
             x = e.x[src, p]
             if not first:

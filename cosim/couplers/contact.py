@@ -28,9 +28,10 @@ from cosim.couplers.contact_rules import (
     speculative_bc,
     surface_offset,
 )
+from cosim.engines.data_oriented import data_oriented
 
 
-@ti.data_oriented
+@data_oriented
 class GridContact:
     """Grid contact model: at grid nodes closer to a body than ``band`` (default half a cell; with 0,
     walls thinner than about 3 cells leak: docs/contact.md; a source may set its own ``grid_band``:
@@ -53,6 +54,7 @@ class GridContact:
     @ti.kernel
     def _apply(self, g: ti.i32, s: ti.i32, dt: float):
         e = self.engine
+        ti.loop_config(serialize=e.serial_grid_loops)
         for I in ti.grouped(ti.ndrange(*e.nodes)):
             v = self.upstream.velocity(g, I)
             m = e.grid_m[g, I]
@@ -88,7 +90,7 @@ class GridContact:
         self.output.grad.fill(0)
 
 
-@ti.data_oriented
+@data_oriented
 class ParticlePenalty:
     """Particle contact model: a particle closer to a body than its offset (default its radius,
     see ``surface_offset``), gap = d - offset < 0, receives the penalty force
@@ -115,6 +117,7 @@ class ParticlePenalty:
     @ti.kernel
     def _apply(self, src: ti.i32, g: ti.i32, s: ti.i32, dt: float):
         e = self.engine
+        ti.loop_config(serialize=e.serial_particle_loops)
         for p in range(e.count[None]):
             x, v = e.x[src, p], e.v[src, p]
             m = e.mass_of(p)
@@ -144,7 +147,7 @@ class ParticlePenalty:
         self.output.grad.fill(0)
 
 
-@ti.data_oriented
+@data_oriented
 class ForecastContact:
     """Forecast contact model (SoftMAC): look ahead with a G2P of the free grid velocities,
     fix the particle velocities with BC_p, then take one gradient step on the grid velocities:
@@ -268,6 +271,7 @@ class ForecastContact:
         constrained particles' W M_p r. One kernel (atomic adds only for constrained particles):
         each launch costs ~50 us on this CPU, as much as the work here."""
         e = self.engine
+        ti.loop_config(serialize=e.serial_particle_loops)
         for p in range(e.count[None]):
             x = e.x[src, p]
             constrained = self._within_threshold(s, x, p)
@@ -289,6 +293,7 @@ class ForecastContact:
         """The residual r = v_init - BC_p(v_init) of ``_forecast`` alone: the part of the forecast
         whose adjoint Taichi derives (the stencil transfers around it have hand-written ones)."""
         e = self.engine
+        ti.loop_config(serialize=e.serial_particle_loops)
         for p in range(e.count[None]):
             if self.constrained[g, p]:
                 x = e.x[src, p]
@@ -299,6 +304,7 @@ class ForecastContact:
         """Adjoint of ``_forecast``'s correction scatter (correction_i += w_i m_p r): the correction's
         adjoint gathered into r's and x's, per constrained particle."""
         e = self.engine
+        ti.loop_config(serialize=e.serial_particle_loops)
         for p in range(e.count[None]):
             if self.constrained[g, p]:
                 base, fx, _w = e.stencil(e.x[src, p])
@@ -320,6 +326,7 @@ class ForecastContact:
         """Adjoint of ``_forecast``'s look-ahead gather (v_init = sum_i w_i v_hat_i): v_init's adjoint
         scattered onto the upstream velocity's and gathered into x's, per constrained particle."""
         e = self.engine
+        ti.loop_config(serialize=e.serial_particle_loops)
         for p in range(e.count[None]):
             if self.constrained[g, p]:
                 base, fx, _w = e.stencil(e.x[src, p])
@@ -372,6 +379,7 @@ class ForecastContact:
         """(|W^T v_hat - v_tgt|^2, |W^T v_g - v_tgt|^2) summed over constrained particles."""
         e = self.engine
         before, after = 0.0, 0.0
+        ti.loop_config(serialize=e.serial_particle_loops)
         for p in range(e.count[None]):
             if self.constrained[g, p]:
                 base, _fx, w = e.stencil(e.x[src, p])

@@ -20,6 +20,8 @@ from dataclasses import dataclass
 import numpy as np
 import taichi as ti
 
+from cosim.engines.data_oriented import data_oriented
+
 
 @dataclass
 class SDFGrid:
@@ -77,7 +79,7 @@ def grid_over(lo: np.ndarray, hi: np.ndarray, spacing: float, padding: float) ->
 
 
 # ---------------------------------------------------------------- Taichi lookup
-@ti.data_oriented
+@data_oriented
 class SDFField:
     """An ``SDFGrid`` uploaded to Taichi (distances and node gradients), looked up in kernels."""
 

@@ -18,6 +18,8 @@ it has converged (``polar_rotation``).
 
 import taichi as ti
 
+from cosim.engines.data_oriented import data_oriented
+
 MAX_NEWTON_ITERATIONS = 20  # Frobenius-scaled Newton needs at most ~9 up to condition numbers of 1e16
 # Scaling helps only far from a rotation: it is dropped once an iteration moves R less than this
 # (squared Frobenius norm), as Higham recommends.
@@ -151,7 +153,7 @@ def corotated_kirchhoff_vjp(F, mu, lam, tau_bar):
     return F_bar, mu_bar, pressure_bar * (J - 1.0) * J
 
 
-@ti.data_oriented
+@data_oriented
 class Elastic:
     """Fixed corotated hyperelasticity (Stomakhin et al. 2012)."""
 
@@ -178,7 +180,7 @@ class Elastic:
         return out_bar, 0.0, 0.0
 
 
-@ti.data_oriented
+@data_oriented
 class Plastic(Elastic):
     """Elasto-plastic: corotated elasticity (``Elastic``'s stress) with a von Mises radial return.
 
@@ -232,7 +234,7 @@ class Plastic(Elastic):
         return R @ P_bar + polar_rotation_vjp(F, R, R_bar), mu_bar, 0.0
 
 
-@ti.data_oriented
+@data_oriented
 class Liquid:
     """Weakly compressible liquid: pressure from the volume ratio J, no shear.
 

@@ -17,8 +17,8 @@ import weakref
 from dataclasses import dataclass, field
 
 import numpy as np
-import taichi as ti
 
+from cosim.engines.data_oriented import data_oriented
 from cosim.engines.mpm_adjoint import MPMAdjointKernels
 from cosim.engines.mpm_inputs import STATE_KEYS, MPMConfig, ParticleBody
 from cosim.engines.mpm_watch import BodyHealth
@@ -57,7 +57,7 @@ def _nbytes(value) -> int:
     return getattr(value, "nbytes", 0)
 
 
-@ti.data_oriented
+@data_oriented
 class MPMEngine(MPMAdjointKernels):
     """The soft-body engine ("mpm"): ``state`` / ``set_state`` / ``step`` / ``vjp`` / ``parameters``."""
 
@@ -297,7 +297,7 @@ class MPMEngine(MPMAdjointKernels):
                 raise ValueError("this engine was built without controls")
             return
         full = np.zeros((self.n_particles, self.dim)) if impulse is None else impulse
-        self.control.from_numpy(self.padded(self._real(full)))
+        self._write_vectors(self.control, np.ascontiguousarray(full, dtype=self.real))
 
     # ------------------------------------------------------------ slots
     def _rotation(self, substeps: int) -> list[tuple[int, int]]:

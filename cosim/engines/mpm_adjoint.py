@@ -22,10 +22,11 @@ piecewise constant in x and carries no gradient.
 
 import taichi as ti
 
+from cosim.engines.data_oriented import data_oriented
 from cosim.engines.mpm_kernels import MPMKernels
 
 
-@ti.data_oriented
+@data_oriented
 class MPMAdjointKernels(MPMKernels):
     """The MPM kernels plus the adjoint of one substep (``_substep_grad``)."""
 
@@ -65,6 +66,7 @@ class MPMAdjointKernels(MPMKernels):
     def _p2g_adjoint(self, b: ti.i32, start: ti.i32, end: ti.i32, src: ti.i32, g: ti.i32, control_share: float):
         """Adjoint of ``_p2g``: a parallel gather of the grid momentum and mass adjoints into the
         particle's velocity, affine momentum, position, control and particle-hook momenta."""
+        ti.loop_config(serialize=self.serial_particle_loops)
         for p in range(start, end):
             m_p = self.p_mass[b]
             base, fx, _w = self.stencil(self.x[src, p])
@@ -121,6 +123,7 @@ class MPMAdjointKernels(MPMKernels):
     def _g2p_adjoint_position(self, src: ti.i32, dst: ti.i32, g: ti.i32, source: ti.template()):
         """Adjoint of G2P (``_g2p_advect``) with respect to the particle position (weights and offsets move with it):
         a parallel gather, each particle owning its entry."""
+        ti.loop_config(serialize=self.serial_particle_loops)
         for p in range(self.count[None]):
             base, fx, _w = self.stencil(self.x[src, p])
             weights, slopes = self.axis_weights(fx)
@@ -143,6 +146,7 @@ class MPMAdjointKernels(MPMKernels):
         engine's grid velocity or the last grid hook, which passes it upstream) and clear it.
         A grid pass of its own: inside the G2P adjoint's stencil loop, the hooks' adjoint chain
         took 10 s to compile in 3D (measured), this pass 1 s."""
+        ti.loop_config(serialize=self.serial_grid_loops)
         for I in ti.grouped(ti.ndrange(*self.nodes)):
             source.velocity_grad(g, I, self.gathered_grad[I])
             self.gathered_grad[I] = ti.Vector.zero(float, self.dim)
@@ -153,6 +157,7 @@ class MPMAdjointKernels(MPMKernels):
     ):
         """Adjoint of ``_stress`` (affine = s tau(F, C, mu, lam) + m_p C, s = -dt V0 4 / dx^2): from
         dL/d(affine) to dL/dF, dL/dC and the body's dL/dE, dL/dnu (through the Lame parameters)."""
+        ti.loop_config(serialize=self.serial_particle_loops)
         for p in range(start, end):  # each particle owns its adjoint entries: plain adds, not atomics
             mu, lam = self._lame(b)
             m_p, vol = self.p_mass[b], self.p_vol[b]
@@ -172,6 +177,7 @@ class MPMAdjointKernels(MPMKernels):
         """Adjoint of the advection in ``_g2p_advect`` (x' = x + dt v', F' = project((I + dt C') F)): from dL/dx', dL/dF' to
         dL/dx, dL/dv', dL/dC', dL/dF and the body's dL/dE, dL/dnu (a plastic body's yield limit
         depends on mu)."""
+        ti.loop_config(serialize=self.serial_particle_loops)
         for p in range(start, end):  # each particle owns its adjoint entries: plain adds, not atomics
             mu, lam = self._lame(b)
             x_bar = self.x.grad[dst, p]
@@ -198,6 +204,7 @@ class MPMAdjointKernels(MPMKernels):
     def _zero_grid_grad(self, g: ti.i32):
         """Zero grid copy g's adjoints over its active nodes (``_bound_active``): only they are read and
         written by its substep's adjoint, so no fill of all K grids."""
+        ti.loop_config(serialize=self.serial_grid_loops)
         for I in ti.grouped(
             ti.ndrange(*[(self.active_lo[g][k], self.active_hi[g][k]) for k in ti.static(range(self.dim))])
         ):

@@ -27,12 +27,13 @@ import numpy as np
 import taichi as ti
 
 from cosim.engines.arch import current_choices
+from cosim.engines.data_oriented import data_oriented
 from cosim.engines.materials import MATERIALS
 from cosim.engines.mpm_inputs import MPMConfig, ParticleBody, particle_capacity
 from cosim.engines.mpm_watch import ParticleWatch
 
 
-@ti.data_oriented
+@data_oriented
 class MPMKernels:
     """Fields, kernels and substep phases of the MPM; hooks and the contract live in ``MPMEngine``."""
 
@@ -103,7 +104,12 @@ class MPMKernels:
         self.body_id.from_numpy(
             self.padded(np.concatenate([np.full(b.n, i, dtype=np.int32) for i, b in enumerate(bodies)]))
         )
-        self._serial = current_choices().serial_scatter if config.serial_p2g is None else bool(config.serial_p2g)
+        choices = current_choices()
+        self._serial = choices.serial_scatter if config.serial_p2g is None else bool(config.serial_p2g)
+        # loops too short to repay a CPU thread-pool dispatch run on the launching thread (``arch``); hooks
+        # looping over this engine's particles or nodes follow the same two flags
+        self.serial_particle_loops = choices.serial_particles(self.n_particles)
+        self.serial_grid_loops = choices.serial_nodes(int(np.prod(self.nodes)))
         self.grid_hooks: list = []  # contact models rewriting grid velocities, in order
         self.particle_hooks: list = []  # contact models adding momentum in P2G
         self.substep_preparers: list = []  # boundary sources' before_substep(src, s), run on the host
@@ -197,6 +203,7 @@ class MPMKernels:
 
     @ti.kernel
     def _clear_grid(self, g: ti.i32):
+        ti.loop_config(serialize=self.serial_grid_loops)
         for I in ti.grouped(
             ti.ndrange(*[(self.active_lo[g][k], self.active_hi[g][k]) for k in ti.static(range(self.dim))])
         ):
@@ -214,6 +221,7 @@ class MPMKernels:
     @ti.kernel
     def _stress(self, mat: ti.template(), b: ti.i32, start: ti.i32, end: ti.i32, src: ti.i32, g: ti.i32, dt: float):
         """Affine momentum per particle: stress term plus APIC m C (parallel)."""
+        ti.loop_config(serialize=self.serial_particle_loops)
         for p in range(start, end):
             mu, lam = self._lame(b)
             m_p, vol = self.p_mass[b], self.p_vol[b]
@@ -253,6 +261,7 @@ class MPMKernels:
     def _grid_update(self, g: ti.i32, dt: float, mass_floor: float):
         """Momentum to velocity, gravity and domain walls over the active nodes (``_bound_active``); nodes
         outside keep stale velocities, which no gather reads."""
+        ti.loop_config(serialize=self.serial_grid_loops)
         for I in ti.grouped(
             ti.ndrange(*[(self.active_lo[g][k], self.active_hi[g][k]) for k in ti.static(range(self.dim))])
         ):
@@ -295,6 +304,7 @@ class MPMKernels:
         (``source.velocity``) into slot ``dst``, flag NaN / inf for substep s (``mpm_watch``), move the
         particles and update F with the material's return mapping. One kernel, not two: a launch and a
         pass over v and C fewer per substep. Its adjoint is split (``mpm_adjoint``)."""
+        ti.loop_config(serialize=self.serial_particle_loops)
         for p in range(start, end):
             xp = self.x[src, p]
             base, fx, w = self.stencil(xp)
@@ -317,6 +327,7 @@ class MPMKernels:
 
     @ti.kernel
     def _copy_slot(self, src: ti.i32, dst: ti.i32):
+        ti.loop_config(serialize=self.serial_particle_loops)
         for p in range(self.count[None]):
             self.x[dst, p] = self.x[src, p]
             self.v[dst, p] = self.v[src, p]
@@ -326,6 +337,7 @@ class MPMKernels:
     @ti.kernel
     def _read_slot(self, fld: ti.template(), slot: ti.i32, out: ti.types.ndarray()):
         """Copy one slot of a particle field (or its adjoint) into out (n, d) or (n, d, d)."""
+        ti.loop_config(serialize=self.serial_particle_loops)
         for p in range(self.count[None]):
             if ti.static(fld.m == 1):
                 for i in ti.static(range(fld.n)):
@@ -336,6 +348,7 @@ class MPMKernels:
 
     @ti.kernel
     def _write_slot(self, fld: ti.template(), slot: ti.i32, src: ti.types.ndarray()):
+        ti.loop_config(serialize=self.serial_particle_loops)
         for p in range(self.count[None]):
             if ti.static(fld.m == 1):
                 for i in ti.static(range(fld.n)):
@@ -343,6 +356,15 @@ class MPMKernels:
             else:
                 for i, j in ti.static(ti.ndrange(fld.n, fld.m)):
                     fld[slot, p][i, j] = src[p, i, j]
+
+    @ti.kernel
+    def _write_vectors(self, fld: ti.template(), src: ti.types.ndarray()):
+        """Copy src (n, d) into a per-particle vector field (the controls): Taichi's ``from_numpy`` is a
+        parallel loop over the whole capacity."""
+        ti.loop_config(serialize=self.serial_particle_loops)
+        for p in range(self.count[None]):
+            for i in ti.static(range(fld.n)):
+                fld[p][i] = src[p, i]
 
     def _get(self, fld, slot: int) -> np.ndarray:
         shape = (self.n_particles, self.dim) if fld.m == 1 else (self.n_particles, self.dim, self.dim)

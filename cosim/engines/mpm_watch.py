@@ -18,6 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 import taichi as ti
 
+from cosim.engines.data_oriented import data_oriented
+
 KEYS = ("x", "v", "C", "F")  # the particle state's keys, as the survey counts them
 NONE = 2**30  # the first bad substep of a body with none
 CHUNK = 1024  # particles per survey chunk (chunks run in parallel, each serially)
@@ -41,7 +43,7 @@ def non_finite(value) -> bool:
     return ti.math.isnan(value) or ti.math.isinf(value)
 
 
-@ti.data_oriented
+@data_oriented
 class ParticleWatch:
     """The per-substep flags and the survey of one MPM engine (``MPMKernels``: its fields are read)."""
 
@@ -68,6 +70,7 @@ class ParticleWatch:
         """Per chunk c (parallel), into ``out[c]``: max |v|, particles with a non-finite x, v, C, F, particles
         outside; ``first`` gets the first bad substeps, which are reset."""
         e = self.engine
+        ti.loop_config(serialize=e.serial_particle_loops)
         for c in range(chunks.shape[0]):
             peak, outside = 0.0, 0
             bad = ti.Vector.zero(ti.i32, 4)
@@ -85,6 +88,7 @@ class ParticleWatch:
             for k in ti.static(range(4)):
                 out[c, 1 + k] = bad[k]
             out[c, 5] = outside
+        ti.loop_config(serialize=True)  # a few bodies: a thread-pool dispatch would cost more (arch)
         for b in range(self.n_bodies):
             first[b] = self.first[b]
             self.first[b] = NONE
