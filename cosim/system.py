@@ -117,7 +117,8 @@ class CoupledSystem:
         self.initial = self.state()
         self.conservation = Conservation(mpm, self.gravity, self.domain)
         self.passed_through: dict[str, int] = {}  # "body/rigid body": particles that went through it
-        self.tunnels = TunnelWatch(rigid, mpm.n_particles, 0.25 * self.dx) if rigid is not None else None
+        watched = rigid is not None and rigid.sources  # rigid bodies the MPM sees (none: links it does not)
+        self.tunnels = TunnelWatch(mpm, rigid.sources, 0.25 * self.dx) if watched else None
         self.tunnel_share = TUNNEL_SHARE  # inf: count only (a benchmark measuring the contact's failures)
 
     # ------------------------------------------------------------ state of every engine
@@ -183,7 +184,9 @@ class CoupledSystem:
             speed = max(speed, self.boundary_speed())  # a fixed count does not depend on it
         speed += float(np.linalg.norm(self.gravity)) * self.frame_dt
         K = fixed or self.auto_substeps(speed)
-        poses = self.rigid.poses() if self.rigid is not None else None
+        poses = self.rigid.poses() if self.tunnels is not None else None  # where the bodies start the step
+        if self.tunnels is not None:
+            self.tunnels.begin()
         for attempt in range(RETRIES + 1):
             if K > st.max_substeps:
                 raise SimulationError(
@@ -241,8 +244,8 @@ class CoupledSystem:
                 if target in stepped:
                     raise RuntimeError(f"engine '{name}' hands forces to '{target}', which steps before it")
                 forces[target] = f if forces.get(target) is None else forces[target] + f
-        if poses is not None and tracked:  # the bodies have moved too: their poses now end the step
-            self._check_tunnelling(mpm_record.state["x"], poses, after["x"])
+        if self.tunnels is not None and tracked:  # the bodies have moved too: their poses now end the step
+            self._check_tunnelling(poses)
         self.max_cfl = max(self.max_cfl, cfl)
         self.step_index += 1
         self.last = StepRecord(t0, mpm_record, engine_records, coupler_records, {"reactions": outputs["reactions"]})
@@ -351,16 +354,15 @@ class CoupledSystem:
             cons.add_work(control_work(record.impulse, record.state["v"], self.mpm.mass))
         cons.end_step(self.step_index, after)
 
-    def _check_tunnelling(self, x0: np.ndarray, poses0: list, x1: np.ndarray) -> None:
-        """Count the particles that went through a rigid body this step (``couplers.tunnelling``)
-        into ``self.passed_through`` {"body/rigid body": count}; stop when a body goes through, i.e. more
-        than ``TUNNEL_SHARE`` of its particles (at least ``TUNNEL_MIN``) in one step: the contact failed."""
-        crossed = self.tunnels.step(x0, poses0, x1)
-        for rigid_name, idx in crossed.items():
-            if not len(idx):
-                continue
-            for body, sl in self.slices.items():
-                n = int(np.sum((idx >= sl.start) & (idx < sl.stop)))
+    def _check_tunnelling(self, poses0: list) -> None:
+        """Count the particles that went through a rigid body this step, the bodies at ``poses0`` when it
+        began (``couplers.tunnelling``), into ``self.passed_through`` {"body/rigid body": count}; stop when a
+        body goes through, i.e. more than ``TUNNEL_SHARE`` of its particles (at least ``TUNNEL_MIN``) in one
+        step: the contact failed."""
+        crossed = self.tunnels.step(poses0, self.rigid.poses())
+        for j, rigid_name in enumerate(self.rigid.names):
+            for i, (body, sl) in enumerate(self.slices.items()):
+                n = int(crossed[i, j])
                 if not n:
                     continue
                 key = f"{body}/{rigid_name}"

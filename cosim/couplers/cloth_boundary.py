@@ -318,6 +318,6 @@ class ClothBoundary:
     def _query_nodes(self):
         e = self.engine
         ti.loop_config(serialize=e.serial_grid_loops)
-        for I in ti.grouped(self.node_face):
+        for I in ti.grouped(ti.ndrange(*e.nodes)):
             f, _d2, _w, _r = self.query.nearest(ti.cast(I, float) * e.dx)
             self.node_face[I] = f

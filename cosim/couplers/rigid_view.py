@@ -20,10 +20,13 @@ def _reach(grid) -> float:
 class RigidBodies:
     """Names, scene shapes (None for URDF links), SDF grids and current poses of the rigid bodies."""
 
-    def __init__(self, names: list[str], shapes: list, grids: list, kinematic=None, coupler=None, dim: int = 3):
+    def __init__(
+        self, names: list[str], shapes: list, grids: list, kinematic=None, coupler=None, dim: int = 3, sources=None
+    ):
         self.names = names
         self.shapes = shapes
         self.grids = grids
+        self.sources = list(sources or [])  # the MPM's rigid boundary sources: the same SDFs on the device
         self.kinematic = kinematic  # KinematicEngine or None
         self.coupler = coupler  # MPMRigidCoupler or None
         self.dim = dim

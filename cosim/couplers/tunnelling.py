@@ -2,45 +2,106 @@
 
 A particle went through body b when it is outside b now, on the opposite side from where it was last
 seen outside (the outward normals there and now opposed), and was inside b in between: at the start
-of this step, or somewhere on its straight path over the step in b's frame (sampled every ``spacing``).
-Sliding along a surface, or a particle pushed back out the way it came in, is not counted; a
-particle that slips into a thin wall and out of its far side over several steps is.
+of this step, or somewhere on its straight path over the step in b's frame (sampled at most
+``spacing`` apart). Sliding along a surface, or a particle pushed back out the way it came in, is not
+counted; a particle that slips into a thin wall and out of its far side over several steps is.
+
+The check runs on the device, one pass over the particles per step, against the SDFs the contact
+models use (the rigid boundary sources'); the host reads a table of counts per soft body and rigid
+body, never the particles. On the host, reading the positions twice a step and sampling the SDFs in
+numpy took about 10% of a pour_water step (cProfile).
 """
 
-from __future__ import annotations
-
 import numpy as np
+import taichi as ti
+
+from cosim.engines.data_oriented import data_oriented
+
+MAX_PATH_SAMPLES = 64  # points at most along one particle's path through a body over a step
 
 
+@data_oriented
 class TunnelWatch:
-    """Per rigid body, each particle's outward normal where it was last seen outside."""
+    """Per rigid body, each particle's outward normal (body frame) where it was last seen outside, and
+    the positions the current step started from."""
 
-    def __init__(self, rigid, n_particles: int, spacing: float):
-        self.rigid, self.spacing = rigid, spacing
-        self.last_normal = [np.zeros((n_particles, rigid.dim)) for _ in rigid.grids]
+    def __init__(self, engine, sources: list, spacing: float):
+        """``engine``: the MPM engine; ``sources``: its rigid boundary sources (``RigidBoundaries``) in the
+        rigid bodies' order; ``spacing`` [m]: the largest step between samples along a path."""
+        self.engine = engine
+        self.sdfs = [sdf for source in sources for sdf in source.sdfs]
+        self.n = len(self.sdfs)
+        self.spacing = float(spacing)
+        d = engine.dim
+        self.x0 = ti.Vector.field(d, float, shape=engine.capacity)
+        self.last_normal = ti.Vector.field(d, float, shape=(engine.capacity, self.n))
+        self.crossed = ti.field(ti.i32, shape=(len(engine.bodies), self.n))  # per soft body, rigid body
+        self.real = np.float64 if self.x0.dtype == ti.f64 else np.float32
 
     def reset(self) -> None:
-        for normals in self.last_normal:
-            normals[:] = 0.0
+        """Forget where the particles were last seen outside (a new rollout)."""
+        self.last_normal.fill(0)
 
-    def step(self, x0: np.ndarray, poses0: list, x1: np.ndarray) -> dict[str, np.ndarray]:
-        """Indices of the particles that went through each body over a step from positions ``x0``
-        (bodies at ``poses0``) to ``x1`` (bodies where they are now)."""
-        out = {}
-        bodies = zip(self.rigid.names, self.rigid.grids, poses0, self.rigid.poses(), self.last_normal)
-        for name, grid, (p0, R0), (p1, R1), last in bodies:
-            a, b = (x0 - p0) @ R0, (x1 - p1) @ R1  # world to body frame at each end
-            da, na = grid.sample(a)
-            db, nb = grid.sample(b)
-            last[da >= 0] = na[da >= 0]
-            inside = da < 0
-            travel = np.linalg.norm(b - a, axis=1)
-            flipped = (db >= 0) & (np.sum(last * nb, axis=1) < 0)
-            path = np.flatnonzero(flipped & ~inside & (da < travel))  # may have crossed within the step
-            if len(path):
-                n = int(min(64, max(2, np.ceil(travel[path].max() / self.spacing))))
-                for t in np.linspace(0.0, 1.0, n + 1)[1:-1]:
-                    inside[path] |= grid.sample(a[path] + t * (b[path] - a[path]))[0] < 0
-            out[name] = np.flatnonzero(flipped & inside)
-            last[db >= 0] = nb[db >= 0]
+    def begin(self) -> None:
+        """Keep the positions the coming step starts from."""
+        self._remember(self.engine.slot)
+
+    def step(self, poses0: list, poses1: list) -> np.ndarray:
+        """(soft bodies, rigid bodies) counts of the particles that went through each rigid body over the
+        step since ``begin``, the bodies at ``poses0`` [(position, rotation)] then and ``poses1`` now."""
+        (p0, R0), (p1, R1) = ([np.asarray(a, dtype=self.real) for a in zip(*poses)] for poses in (poses0, poses1))
+        self._watch(self.engine.slot, p0, R0, p1, R1)
+        return self.crossed.to_numpy()
+
+    @ti.kernel
+    def _remember(self, slot: ti.i32):
+        e = self.engine
+        ti.loop_config(serialize=e.serial_particle_loops)
+        for p in range(e.count[None]):
+            self.x0[p] = e.x[slot, p]
+
+    @ti.kernel
+    def _watch(
+        self,
+        slot: ti.i32,
+        p0: ti.types.ndarray(),
+        R0: ti.types.ndarray(),
+        p1: ti.types.ndarray(),
+        R1: ti.types.ndarray(),
+    ):
+        e = self.engine
+        ti.loop_config(serialize=True)
+        for i, j in ti.ndrange(*self.crossed.shape):
+            self.crossed[i, j] = 0
+        ti.loop_config(serialize=e.serial_particle_loops)
+        for p in range(e.count[None]):
+            for b in ti.static(range(self.n)):
+                a = self._to_body(self.x0[p], p0, R0, b)
+                z = self._to_body(e.x[slot, p], p1, R1, b)
+                da, na = self.sdfs[b].distance_normal(a)
+                dz, nz = self.sdfs[b].distance_normal(z)
+                last = self.last_normal[p, b]
+                if da >= 0:
+                    last = na
+                inside = da < 0
+                travel = (z - a).norm()
+                flipped = dz >= 0 and last.dot(nz) < 0
+                if flipped and not inside and da < travel:  # it may have crossed within the step
+                    n = ti.min(MAX_PATH_SAMPLES, ti.max(2, ti.cast(ti.ceil(travel / self.spacing), ti.i32)))
+                    for k in range(1, n):
+                        if self.sdfs[b].distance(a + (k / n) * (z - a)) < 0:
+                            inside = True
+                if flipped and inside:
+                    ti.atomic_add(self.crossed[e.body_id[p], b], 1)
+                if dz >= 0:
+                    last = nz
+                self.last_normal[p, b] = last
+
+    @ti.func
+    def _to_body(self, x, pos: ti.template(), rot: ti.template(), b: ti.template()):
+        """World point x in the frame of body b at (pos[b], rot[b]): rot^T (x - pos)."""
+        out = ti.Vector.zero(float, self.engine.dim)
+        for i in ti.static(range(self.engine.dim)):
+            for j in ti.static(range(self.engine.dim)):
+                out[i] += rot[b, j, i] * (x[j] - pos[b, j])
         return out

@@ -128,7 +128,9 @@ def build_system(scene: Scene, requires_grad: bool = False, steps: int | None = 
     if any(e not in parts.cloths for e in parts.engines):  # rigid engines (a cloth alone needs no rigid view)
         from cosim.couplers.rigid_view import RigidBodies
 
-        rigid = RigidBodies(parts.names, parts.shapes, parts.grids, parts.kinematic, parts.dart_coupler, scene.dim)
+        rigid = RigidBodies(
+            parts.names, parts.shapes, parts.grids, parts.kinematic, parts.dart_coupler, scene.dim, parts.rigid_sources
+        )
         _check_start_outside_rigid(rigid, mpm.state()["x"], scene.dx)
         for cloth_index, cloth in enumerate(parts.cloths):
             _attach_cloth_rigid_contact(scene, scene.cloth[cloth_index], cloth, rigid)
@@ -162,6 +164,7 @@ class Manipulators:
     couplers: list = field(default_factory=list)
     plans: dict = field(default_factory=dict)
     sources: list = field(default_factory=list)  # boundary sources, for the contact model
+    rigid_sources: list = field(default_factory=list)  # the rigid ones (``RigidBoundaries``), in body order
     names: list = field(default_factory=list)  # rigid bodies the MPM sees, in source order
     shapes: list = field(default_factory=list)
     grids: list = field(default_factory=list)
@@ -177,6 +180,7 @@ class Manipulators:
         mpm.attach_boundary(coupler.source, source)
         self.couplers.append(coupler)
         self.sources.append(source)
+        self.rigid_sources.append(source)
         self.grids += grids
 
 
