@@ -36,7 +36,6 @@ class TunnelWatch:
         self.x0 = ti.Vector.field(d, float, shape=engine.capacity)
         self.last_normal = ti.Vector.field(d, float, shape=(engine.capacity, self.n))
         self.crossed = ti.field(ti.i32, shape=(len(engine.bodies), self.n))  # per soft body, rigid body
-        self.real = np.float64 if self.x0.dtype == ti.f64 else np.float32
 
     def reset(self) -> None:
         """Forget where the particles were last seen outside (a new rollout)."""
@@ -49,7 +48,9 @@ class TunnelWatch:
     def step(self, poses0: list, poses1: list) -> np.ndarray:
         """(soft bodies, rigid bodies) counts of the particles that went through each rigid body over the
         step since ``begin``, the bodies at ``poses0`` [(position, rotation)] then and ``poses1`` now."""
-        (p0, R0), (p1, R1) = ([np.asarray(a, dtype=self.real) for a in zip(*poses)] for poses in (poses0, poses1))
+        (p0, R0), (p1, R1) = (
+            [np.asarray(a, dtype=self.engine.real) for a in zip(*poses)] for poses in (poses0, poses1)
+        )
         out = np.zeros(self.crossed.shape, dtype=np.int32)
         self._watch(self.engine.slot, p0, R0, p1, R1, out)
         return out

@@ -220,7 +220,7 @@ class MPMKernels:
 
     @ti.kernel
     def _stress(self, mat: ti.template(), b: ti.i32, start: ti.i32, end: ti.i32, src: ti.i32, g: ti.i32, dt: float):
-        """Affine momentum per particle: stress term plus APIC m C (parallel)."""
+        """Affine momentum per particle: stress term plus APIC m C (parallel unless the engine is small: ``arch``)."""
         ti.loop_config(serialize=self.serial_particle_loops)
         for p in range(start, end):
             mu, lam = self._lame(b)
@@ -300,10 +300,10 @@ class MPMKernels:
         s: ti.i32,
         dt: float,
     ):
-        """G2P and advection of one body (parallel): gather velocity and affine field from the grid
-        (``source.velocity``) into slot ``dst``, flag NaN / inf for substep s (``mpm_watch``), move the
-        particles and update F with the material's return mapping. One kernel, not two: a launch and a
-        pass over v and C fewer per substep. Its adjoint is split (``mpm_adjoint``)."""
+        """G2P and advection of one body (parallel unless the engine is small): gather velocity and affine
+        field from the grid (``source.velocity``) into slot ``dst``, flag NaN / inf for substep s
+        (``mpm_watch``), move the particles and update F with the material's return mapping. One kernel,
+        not two: a launch and a pass over v and C fewer per substep. Its adjoint is split (``mpm_adjoint``)."""
         ti.loop_config(serialize=self.serial_particle_loops)
         for p in range(start, end):
             xp = self.x[src, p]
