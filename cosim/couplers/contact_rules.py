@@ -14,6 +14,8 @@ AUTO_OFFSET = -1.0  # a contact offset below 0: each particle's radius (``surfac
 APPROACH_SOFT = 1e-4  # [m/s] the blended BC's removal of an approach is rounded over this speed (a tenth
 # of what gravity adds in a 1e-4 s substep)
 BLEND_SOFT = 1e-2  # [cells] the forecast blend's corner at the surface is rounded over this
+GRID_SUPPORT = ("material", "nodes")  # grid model: liquids held by their own edge, or all material at node rows
+LIQUID_BAND_SHIFT = 2.0  # [cells] grid model: how far into a body the band moves at a node of liquid only
 TAPER = 0.25  # forecast: the fraction of the threshold over which BC_p's weight falls to 0
 
 
@@ -99,3 +101,21 @@ def coulomb_slip(vt, limit):
     width = STICK_SOFT * (speed + limit) + STICTION_SPEED
     top = 0.5 * (speed + limit + ti.sqrt((speed - limit) ** 2 + width * width))  # >= max(speed, limit)
     return 1.0 - limit / top
+
+
+@ti.func
+def reach_of_fill(phi):
+    """[cells] How far material filling a share phi of a node's cell reaches past the node, if it
+    filled a half-space: the inverse of B(u) = integral of the quadratic B-spline up to u. Exact
+    on |u| <= 1/2 (the cubic u^3 - 9u/4 + 3 (phi - 1/2) = 0, solved in closed form); beyond it B's
+    tails are flat, so the inverse would magnify the fill's noise without bound, and it continues
+    along its tangent instead (slope 2; C1): at phi = 0 and 1 it gives -/+5/6 where B gives -/+3/2.
+    Those nodes are over a cell from the material's edge, where the contact gap is not held."""
+    c = ti.min(ti.max(-4.0 * (phi - 0.5) / ti.sqrt(3.0), -1.0), 1.0)
+    middle = ti.sqrt(3.0) * ti.cos((2.0 * 3.141592653589793 - ti.acos(c)) / 3.0)
+    u = middle
+    if phi < 1.0 / 6.0:
+        u = -0.5 + 2.0 * (phi - 1.0 / 6.0)
+    elif phi > 5.0 / 6.0:
+        u = 0.5 + 2.0 * (phi - 5.0 / 6.0)
+    return u

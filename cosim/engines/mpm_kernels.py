@@ -211,7 +211,7 @@ class MPMKernels:
             self.grid_m[g, I] = 0.0
             self.grid_v[g, I] = ti.Vector.zero(float, self.dim)
             for fld in ti.static(self._hook_scratch()):
-                fld[g, I] = ti.Vector.zero(float, self.dim)
+                fld[g, I] = ti.zero(fld[g, I])
 
     @ti.func
     def velocity(self, g, I):
