@@ -28,11 +28,12 @@ FLOOR = 0.44 - 0.15 + 0.09375  # [m] the glasses' inside bottom (both centred at
 
 
 def water(name: str, x: float) -> dict:
-    """Water filling the glass centred at x to 0.16 m (5 mm clear of its walls), started hydrostatic."""
+    """Water filling the glass centred at x to 0.16 m, wall to wall, started hydrostatic (5 mm clear of its walls
+    the water, held by its own edge, first spread to them: a transient longer than the run)."""
     return {
         "name": name,
         "material": {"type": "liquid", "E": 1e5, "nu": 0.3, "viscosity": 1.0},
-        "shape": {"type": "box", "center": [x, FLOOR + 0.08], "size": [2 * (0.14 - 0.09375) - 0.01, 0.16]},
+        "shape": {"type": "box", "center": [x, FLOOR + 0.08], "size": [2 * (0.14 - 0.09375), 0.16]},
         "hydrostatic": True,
     }
 

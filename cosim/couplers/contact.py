@@ -18,6 +18,7 @@ from cosim.couplers.contact_rules import (
     AUTO_OFFSET,
     BLEND_SOFT,
     BLEND_WHERE,
+    CELL_SHARE,
     GRID_SUPPORT,
     LIQUID_BAND_SHIFT,
     PROJECT_SOFT,
@@ -25,6 +26,7 @@ from cosim.couplers.contact_rules import (
     TAPER,
     default_alpha,
     frictional_bc,
+    occupancy,
     reach_of_fill,
     soft_ramp,
     source_offset,
@@ -46,10 +48,11 @@ class GridContact:
     - liquids (``support: material``, the default): the distance of the liquid near the node to the
       surface, d - dx u, where u [cells] is how far it reaches past the node towards the body, read
       off the node's liquid volume fraction phi = sum_p w_ip V_p / dx^dim as if the liquid filled a
-      half-space (``reach_of_fill``). Held at node rows (``support: nodes``), a liquid stops where
-      the outermost held row's stencil first reaches it, 0.5-1 cell off the surface: water dropped
-      on a plate settled 0.5-0.9 cells high, a floating box floated 0.04-0.38 cells high, depending
-      on where the surface fell between rows; held by its own edge, 0.08-0.13 and -0.04 to +0.07.
+      half-space (``reach_of_fill``), after adding the bodies' solid in the stencil beyond a flat
+      body's (``_liquid_reach``). Held at node rows (``support: nodes``), a liquid stops where
+      the outermost held row's stencil first reaches it: water dropped on a plate settled 0.5-0.9
+      cells high, a floating box floated 0.04-0.38 cells high, depending on where the surface fell
+      between rows; held by its own edge, 0.08-0.13 cells low and -0.01 to +0.07 (docs/contact.md).
       Solids are not held so: met all at once at the surface instead of over the held rows' stencil,
       an elastic sphere (3D, 32 cells) kept 0.77 of its speed instead of the domain wall's 0.91.
 
@@ -70,9 +73,11 @@ class GridContact:
         grad = engine.cfg.requires_grad
         self.output = ti.Vector.field(engine.dim, float, shape=engine.grid_v.shape, needs_grad=grad)
         self.liquid = None  # per node: (liquid volume fraction phi, liquid mass) [-, kg]
+        self.solid = None  # per node next to liquid: the share of its cell inside the bodies [-]
         if self._reads_liquid():
             self.liquid = ti.Vector.field(2, float, shape=engine.grid_m.shape, needs_grad=grad)
-            self.scratch = [self.liquid]  # zeroed by the engine with the grid each substep
+            self.solid = ti.field(float, shape=engine.grid_m.shape, needs_grad=grad)
+            self.scratch = [self.liquid, self.solid]  # zeroed by the engine with the grid each substep
         self.upstream = engine.attach_grid_hook(self)
 
     def _held_by_liquid(self, source) -> bool:
@@ -116,6 +121,52 @@ class GridContact:
                         g_x += grad_w * self.liquid.grad[g, base + offset].dot(share)
                 e.x.grad[src, p] += g_x
 
+    @ti.func
+    def _near_liquid(self, g, I):
+        """1 if node I or a neighbour carries liquid (only there is the solid share read)."""
+        e = self.engine
+        near = 0
+        for offset in ti.static(ti.grouped(ti.ndrange(*([(-1, 2)] * e.dim)))):
+            J = ti.min(ti.max(I + offset, 0), ti.Vector(e.nodes) - 1)
+            if self.liquid[g, J][1] > 0:
+                near = 1
+        return near
+
+    @ti.kernel
+    def _occupy(self, g: ti.i32, s: ti.i32):
+        """Per node next to liquid, the share of its cell inside the bodies (``occupancy``, summed, at
+        most 1): the solid the liquid's fill is read against (``_liquid_reach``)."""
+        e = self.engine
+        ti.loop_config(serialize=e.serial_grid_loops)
+        for I in ti.grouped(ti.ndrange(*e.nodes)):
+            if self._near_liquid(g, I):
+                xi = ti.cast(I, float) * e.dx
+                inside = 0.0
+                for src in ti.static(self.sources):
+                    if ti.static(self._held_by_liquid(src)):
+                        for b in ti.static(range(src.n)):
+                            inside += occupancy(src.distance(s, b, xi, -1), e.dx)
+                self.solid[g, I] = ti.min(inside, 1.0)
+
+    @ti.func
+    def _liquid_reach(self, g, I, d, n):
+        """[cells] How far the liquid reaches past node I towards a body at distance d, normal n: its
+        fill phi read as a half-space's (``reach_of_fill``) after adding the solid in the node's
+        stencil beyond what a flat body at d would hold. Against a flat body that adds nothing; in a
+        container's corner the other wall fills part of the stencil, and read alone the fill made
+        the liquid seem farther off than it was (water in a cup 2.6 cells wide first sank half a cell
+        into its floor)."""
+        e = self.engine
+        solid, flat = 0.0, 0.0
+        for offset in ti.static(ti.grouped(ti.ndrange(*([3] * e.dim)))):
+            share = 1.0
+            for k in ti.static(range(e.dim)):
+                share *= CELL_SHARE[offset[k]]
+            J = ti.min(ti.max(I + offset - 1, 0), ti.Vector(e.nodes) - 1)
+            solid += share * self.solid[g, J]
+            flat += share * occupancy(d + e.dx * n.dot(ti.cast(offset - 1, float)), e.dx)
+        return reach_of_fill(self.liquid[g, I][0] + solid - flat)
+
     @ti.kernel
     def _apply(self, g: ti.i32, s: ti.i32, dt: float):
         e = self.engine
@@ -130,9 +181,8 @@ class GridContact:
                         d, n = src.distance_normal(s, b, xi, -1)
                         gap = d - ti.static(getattr(src, "grid_band", self.band))
                         if ti.static(self._liquid_held_at(src)):
-                            phi, liquid_mass = self.liquid[g, I][0], self.liquid[g, I][1]
-                            gap += LIQUID_BAND_SHIFT * e.dx * ti.min(liquid_mass / m, 1.0)
-                            gap = ti.min(gap, d - e.dx * reach_of_fill(phi))
+                            gap += LIQUID_BAND_SHIFT * e.dx * ti.min(self.liquid[g, I][1] / m, 1.0)
+                            gap = ti.min(gap, d - e.dx * self._liquid_reach(g, I, d, n))
                         # a node a cell beyond keeps its velocity unless material crosses a cell per substep
                         if gap < e.dx:
                             vc = src.contact_velocity(s, b, xi, -1)
@@ -152,17 +202,20 @@ class GridContact:
     def apply(self, src: int, g: int, s: int, dt: float) -> None:
         if self.liquid is not None:
             self._scatter_liquid(src, g)
+            self._occupy(g, s)
         self._apply(g, s, dt)
 
     def apply_grad(self, src: int, g: int, s: int, dt: float) -> None:
         self._apply.grad(g, s, dt)
         if self.liquid is not None:
+            self._occupy.grad(g, s)
             self._liquid_adjoint(src, g)
 
     def zero_grad(self) -> None:
         self.output.grad.fill(0)
         if self.liquid is not None:
             self.liquid.grad.fill(0)
+            self.solid.grad.fill(0)
 
 
 @data_oriented

@@ -119,3 +119,14 @@ def reach_of_fill(phi):
     elif phi > 5.0 / 6.0:
         u = 0.5 + 2.0 * (phi - 5.0 / 6.0)
     return u
+
+
+@ti.func
+def occupancy(d, dx):
+    """Share [-] of a node's cell inside a body at signed distance d [m] from the node: 1 - smoothstep
+    of d over (-dx, dx), 1/2 at the surface (C1)."""
+    t = ti.min(ti.max(0.5 * (d / dx + 1.0), 0.0), 1.0)
+    return 1.0 - t * t * (3.0 - 2.0 * t)
+
+
+CELL_SHARE = (1.0 / 6.0, 2.0 / 3.0, 1.0 / 6.0)  # the quadratic B-spline's integral over each neighbour's cell

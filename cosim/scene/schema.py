@@ -352,11 +352,11 @@ class ContactSpec(Strict):
 
     model: Literal["grid", "particle", "forecast"] = "grid"
     friction: Annotated[float, Field(ge=0)] = 0.0  # Coulomb coefficient
-    # grid model: where the material is held, "material" (its edge, read off the nodes' volume fractions: the
-    # surface where the geometry is) or "nodes" (the paper's: at the outermost node row within ``band``)
+    # grid model: where liquid is held, "material" (by its own edge, read off the nodes' liquid volume fractions:
+    # the surface where the geometry is) or "nodes" (the paper's: at the node rows within ``band``); solids: the band
     support: Literal["material", "nodes"] = "material"
-    # [m] grid model: nodes closer than this are fully constrained, beyond it the constraint fades in; default
-    # 0 with support "material", dx / 2 with "nodes" (smaller bands let walls thinner than about 3 cells leak)
+    # [m] grid model: nodes closer than this hold solids (with support "nodes", all material) off, beyond it the
+    # constraint fades in; default dx / 2 (smaller bands let walls thinner than about 3 cells leak)
     band: Annotated[float, Field(ge=0)] | None = None
     stiffness: Positive = 600.0  # particle model: push one cell deep, in units of g (see ParticlePenalty)
     # forecast: gradient step (mass-normalised); default 0.8 in 2D and with a cloth, else 0.3 in 3D (more
