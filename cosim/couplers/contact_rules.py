@@ -16,6 +16,9 @@ APPROACH_SOFT = 1e-4  # [m/s] the blended BC's removal of an approach is rounded
 BLEND_SOFT = 1e-2  # [cells] the forecast blend's corner at the surface is rounded over this
 GRID_SUPPORT = ("material", "nodes")  # grid model: liquids held by their own edge, or all material at node rows
 LIQUID_BAND_SHIFT = 2.0  # [cells] grid model: how far into a body the band moves at a node of liquid only
+DENSE_FILL = (0.5, 0.9)  # grid model: liquid is read as a half-space where its stencil's fullest node fills above
+SOLID_SOFT = 0.05  # grid model: the extra solid in a stencil is counted from 0 up, rounded over this share
+CELL_SHARE = (1.0 / 6.0, 2.0 / 3.0, 1.0 / 6.0)  # the quadratic B-spline's integral over each neighbour's cell
 TAPER = 0.25  # forecast: the fraction of the threshold over which BC_p's weight falls to 0
 
 
@@ -127,6 +130,3 @@ def occupancy(d, dx):
     of d over (-dx, dx), 1/2 at the surface (C1)."""
     t = ti.min(ti.max(0.5 * (d / dx + 1.0), 0.0), 1.0)
     return 1.0 - t * t * (3.0 - 2.0 * t)
-
-
-CELL_SHARE = (1.0 / 6.0, 2.0 / 3.0, 1.0 / 6.0)  # the quadratic B-spline's integral over each neighbour's cell
