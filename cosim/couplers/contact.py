@@ -54,7 +54,7 @@ class GridContact:
       body's (``_liquid_reach``). Held at node rows (``support: nodes``), a liquid stops where
       the outermost held row's stencil first reaches it: water dropped on a plate settled 0.5-0.9
       cells high, a floating box floated 0.04-0.38 cells high, depending on where the surface fell
-      between rows; held by its own edge, 0.08-0.13 cells low and -0.01 to +0.07 (docs/contact.md).
+      between rows; held by its own edge, 0.02-0.12 cells low and -0.04 to +0.07 (docs/contact.md).
       Solids are not held so: met all at once at the surface instead of over the held rows' stencil,
       an elastic sphere (3D, 32 cells) kept 0.77 of its speed instead of the domain wall's 0.91.
 
@@ -95,6 +95,12 @@ class GridContact:
         has_liquid = any(body.material == "liquid" for body in self.engine.bodies)
         return has_liquid and any(self._held_by_liquid(src) for src in self.sources)
 
+    @ti.func
+    def _liquid_share(self, p):
+        """What liquid particle p adds to a node per unit weight: (V_p / dx^dim, m_p)."""
+        e = self.engine
+        return ti.Vector([e.p_vol[e.body_id[p]] * e.inv_dx**e.dim, e.mass_of(p)])
+
     @ti.kernel
     def _scatter_liquid(self, src: ti.i32, g: ti.i32):
         """Per node, the liquid's volume fraction sum_p w_ip V_p / dx^dim and mass sum_p w_ip m_p."""
@@ -103,7 +109,7 @@ class GridContact:
         for p in range(e.count[None]):
             if e.is_liquid(p):
                 base, _fx, w = e.stencil(e.x[src, p])
-                share = ti.Vector([e.p_vol[e.body_id[p]] * e.inv_dx**e.dim, e.mass_of(p)])
+                share = self._liquid_share(p)
                 for offset in ti.static(ti.grouped(ti.ndrange(*([3] * e.dim)))):
                     self.liquid[g, base + offset] += e.stencil_weight(w, offset) * share
 
@@ -116,7 +122,7 @@ class GridContact:
             if e.is_liquid(p):
                 base, fx, _w = e.stencil(e.x[src, p])
                 weights, slopes = e.axis_weights(fx)
-                share = ti.Vector([e.p_vol[e.body_id[p]] * e.inv_dx**e.dim, e.mass_of(p)])
+                share = self._liquid_share(p)
                 g_x = ti.Vector.zero(float, e.dim)
                 for i in range(3):  # the stencil as in the engine's adjoints (``node_weight``)
                     for rest in ti.static(ti.grouped(ti.ndrange(*([3] * (e.dim - 1))))):
