@@ -10,6 +10,7 @@ from cosim.couplers.contact_rules import (
     DENSE_FILL,
     GRID_SUPPORT,
     LIQUID_BAND_SHIFT,
+    LIQUID_REACH,
     SOLID_SOFT,
     occupancy,
     reach_of_fill,
@@ -187,10 +188,13 @@ class GridContact:
                     for b in ti.static(range(src.n)):
                         d, n = src.distance_normal(s, b, xi, -1)
                         gap = d - ti.static(getattr(src, "grid_band", self.band))
-                        if ti.static(self._liquid_held_at(src)):
-                            share = ti.min(self.liquid[g, I][1] / m, 1.0) * self._dense_liquid(g, I)
-                            gap += LIQUID_BAND_SHIFT * e.dx * share
-                            gap = ti.min(gap, d - e.dx * self._liquid_reach(g, I, d, n))
+                        if ti.static(self._liquid_held_at(src)):  # noqa: SIM102 (compile-time, then run-time)
+                            # beyond LIQUID_REACH cells the liquid's gap exceeds a cell whatever its fill (it
+                            # reaches at most about 1.2 cells past a node), so both gaps leave the node free
+                            if d < LIQUID_REACH * e.dx:
+                                share = ti.min(self.liquid[g, I][1] / m, 1.0) * self._dense_liquid(g, I)
+                                gap += LIQUID_BAND_SHIFT * e.dx * share
+                                gap = ti.min(gap, d - e.dx * self._liquid_reach(g, I, d, n))
                         # a node a cell beyond keeps its velocity unless material crosses a cell per substep
                         if gap < e.dx:
                             vc = src.contact_velocity(s, b, xi, -1)

@@ -15,6 +15,7 @@ APPROACH_SOFT = 1e-4  # [m/s] the blended BC's removal of an approach is rounded
 # of what gravity adds in a 1e-4 s substep)
 BLEND_SOFT = 1e-2  # [cells] the forecast blend's corner at the surface is rounded over this
 GRID_SUPPORT = ("material", "nodes")  # grid model: liquids held by their own edge, or all material at node rows
+LIQUID_REACH = 3.0  # [cells] grid model: nodes farther from a body than this skip the liquid's reading
 LIQUID_BAND_SHIFT = 2.0  # [cells] grid model: how far into a body the band moves at a node of liquid only
 DENSE_FILL = (0.5, 0.9)  # grid model: liquid is read as a half-space where its stencil's fullest node fills above
 SOLID_SOFT = 0.05  # grid model: the extra solid in a stencil is counted from 0 up, rounded over this share
