@@ -138,3 +138,65 @@ def test_lbfgs_reaches_the_bounded_optimum(steering):
     assert np.all(np.abs(impulse) <= limit * (1 + 1e-12))
     assert np.allclose(impulse[..., 0], limit, rtol=1e-9)
     assert result.best_loss == pytest.approx(2.25e-4, rel=1e-6)
+
+
+def _walled_quadratic(wall: float = 2.5):
+    """loss (x - 3)^2 whose rollout fails (SimulationError) beyond x = ``wall``; logs every x evaluated."""
+    seen: list[float] = []
+
+    def evaluate(params, grad):
+        x = float(params["x"][0])
+        seen.append(x)
+        if x > wall:
+            raise SimulationError(f"x = {x} left the domain")
+        return (x - 3.0) ** 2, ({"x": np.array([2.0 * (x - 3.0)])} if grad else None)
+
+    return evaluate, seen
+
+
+def test_a_step_whose_rollout_fails_is_taken_again_at_half_its_length(tmp_path):
+    """Adam at lr 1 from x = 0 steps by about 1 per iteration towards 3, past the wall at 2.5: each step
+    whose rollout fails is retried at half its length from the point before it until one passes, and the
+    row says how often. Every accepted point is x_prev + (first try - x_prev) / 2^halvings, none lies
+    beyond the wall, and the loss falls. The same run interrupted after iteration 2 and resumed from its
+    checkpoint halves the same steps and ends equal."""
+    evaluate, seen = _walled_quadratic()
+    args = (evaluate, {"x": np.array([0.0])}, ["x"], {"x": 1.0}, 5, 1.0)
+    straight = minimise(*args, checkpoint=tmp_path / "a.npz")
+    halvings = [r.get("step_halvings", 0) for r in straight.history]
+    assert sum(halvings) >= 2, halvings
+    accepted = [x for x in seen if x <= 2.5]
+    assert len(accepted) == len(straight.losses)  # one evaluation per iteration, one final
+    np.testing.assert_allclose(straight.losses, [(x - 3.0) ** 2 for x in accepted], rtol=1e-12)
+    tries = iter(seen)
+    previous = next(tries)
+    for h in halvings[1:]:
+        first = next(tries)
+        for _ in range(h or 0):
+            next(tries)
+        if h:
+            assert first > 2.5
+            accepted_x = previous + (first - previous) / 2**h
+            assert accepted_x <= 2.5
+            previous = accepted_x
+        else:
+            previous = first
+    assert straight.best_loss < 0.05 * straight.losses[0]
+
+    def interrupt(row, _history):
+        if row["iteration"] == 2:
+            raise KeyboardInterrupt
+
+    evaluate, _ = _walled_quadratic()
+    args = (evaluate, {"x": np.array([0.0])}, ["x"], {"x": 1.0}, 5, 1.0)
+    with pytest.raises(KeyboardInterrupt):
+        minimise(*args, checkpoint=tmp_path / "b.npz", on_iteration=interrupt)
+    resumed = minimise(*args, checkpoint=tmp_path / "b.npz", resume=True)
+    assert [r.get("step_halvings", 0) for r in resumed.history] == halvings
+    np.testing.assert_allclose(resumed.losses, straight.losses, rtol=1e-12)
+
+
+def test_a_rollout_that_fails_before_any_step_is_reported_with_its_iteration():
+    evaluate, _ = _walled_quadratic(wall=-1.0)
+    with pytest.raises(SimulationError, match=r"iteration 0: the rollout failed: x = 0.0 left the domain"):
+        minimise(evaluate, {"x": np.array([0.0])}, ["x"], {"x": 1.0}, 3, 1.0)

@@ -6,6 +6,11 @@ learning rate serves impulses [N s], actions [m/s] and moduli [Pa] alike. No gra
 scaled, clipped or dropped: bounds (e.g. nu < 0.5) and constraints (a cloth control's reach)
 project the parameters after a step.
 
+A step whose rollout fails (a ``SimulationError``: material leaving the domain, the CFL or
+tracing bound, a NaN) is taken again at half its length from the parameters before it, up to
+``MAX_HALVINGS`` times (the step-length control of a line search; the gradient is untouched);
+the iteration's row records the halvings.
+
 With a ``checkpoint`` path the parameters, the optimiser's moments and the history are
 saved after every iteration; ``resume`` continues from it, so an interrupted run ends
 where an uninterrupted one does (Adam and SGD; scipy's L-BFGS-B keeps its memory inside,
@@ -25,6 +30,7 @@ import numpy as np
 from cosim.errors import InputError, SimulationError
 
 METHODS = ("adam", "sgd", "lbfgs")
+MAX_HALVINGS = 6  # a failed step is retried at 1/2, 1/4, ... down to 1/64 of its length
 
 
 @dataclass
@@ -104,13 +110,20 @@ def minimise(
     params = {k: np.array(v, dtype=np.float64, copy=True) for k, v in params.items()}
     optimiser = (Adam if method == "adam" else SGD)(names, params)
     result = OptimizeResult(params={k: a.copy() for k, a in params.items()})
-    start = 0
+    start, before = 0, None  # before: the parameters before the last step (None: no step taken yet)
     if resume:
-        start = _load(Path(checkpoint), params, optimiser, result, names, method)
+        start, before = _load(Path(checkpoint), params, optimiser, result, names, method)
+
+    def shorten(current: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        half = {k: constrain(before[k] + 0.5 * (current[k] - before[k]), k, bounds, projections) for k in names}
+        return {**current, **half}
+
     for it in range(start, iterations):
         t0 = time.perf_counter()
-        loss, grads = evaluate(params, True)
+        loss, grads, params, halvings = _evaluate_shortening(evaluate, params, before, shorten, it)
         row = {"iteration": it, "loss": loss, **(terms() if terms else {})}
+        if halvings:
+            row["step_halvings"] = halvings
         if loss < result.best_loss:
             result.best_loss = loss
             result.params = {k: a.copy() for k, a in params.items()}
@@ -122,22 +135,39 @@ def minimise(
                     "lower optimize.learning_rate or check the scene's stability"
                 )
             row[f"grad:{k}"] = float(np.linalg.norm(g))
+        before = {k: a.copy() for k, a in params.items()}
+        for k in names:
             params[k] = constrain(
-                params[k] + optimiser.step(it, k, g, learning_rate, scales[k]), k, bounds, projections
+                params[k] + optimiser.step(it, k, grads[k], learning_rate, scales[k]), k, bounds, projections
             )
         row["seconds"] = time.perf_counter() - t0
         result.losses.append(loss)
         result.history.append(row)
         if checkpoint is not None:
-            _save(Path(checkpoint), params, optimiser, result, it + 1, method)
+            _save(Path(checkpoint), params, optimiser, result, it + 1, method, before)
         if on_iteration is not None:
             on_iteration(row, result.history)
-    final, _ = evaluate(params, False)
+    final, _, params, _ = _evaluate_shortening(evaluate, params, before, shorten, iterations, grad=False)
     result.losses.append(final)
     if final < result.best_loss:
         result.best_loss = final
         result.params = {k: a.copy() for k, a in params.items()}
     return result
+
+
+def _evaluate_shortening(evaluate, params, before, shorten, it: int, grad: bool = True):
+    """(loss, gradients, the parameters evaluated, halvings): ``evaluate`` at ``params``, and while its
+    rollout fails after a step (``before`` is not None), at ``shorten(params)``, half as far from ``before``."""
+    for halvings in range(MAX_HALVINGS + 1):
+        try:
+            loss, grads = evaluate(params, grad)
+            return loss, grads, params, halvings
+        except SimulationError as err:
+            if before is None or halvings == MAX_HALVINGS:
+                tried = f" (and the step halved {halvings} times)" if halvings else ""
+                raise SimulationError(f"optimize: iteration {it}: the rollout failed{tried}: {err}") from err
+            params = shorten(params)
+    raise AssertionError("unreachable")
 
 
 def constrain(value: np.ndarray, name: str, bounds: dict | None, projections: dict | None) -> np.ndarray:
@@ -213,9 +243,11 @@ def adam(evaluate, params, names, scales, iterations, learning_rate, bounds=None
     )
 
 
-def _save(path: Path, params, optimiser, result: OptimizeResult, done: int, method: str) -> None:
-    """Everything a resumed run needs, written atomically (a crash mid-write keeps the last one)."""
+def _save(path: Path, params, optimiser, result: OptimizeResult, done: int, method: str, before=None) -> None:
+    """Everything a resumed run needs, written atomically (a crash mid-write keeps the last one); ``before``:
+    the parameters before the last step, from which a failed step is shortened."""
     arrays = {f"param:{k}": v for k, v in params.items()}
+    arrays.update({f"before:{k}": v for k, v in (before or {}).items()})
     arrays.update({f"best:{k}": v for k, v in result.params.items()})
     arrays.update({f"opt:{k}": v for k, v in optimiser.state.items()})
     meta = {"done": done, "method": method, "best_loss": result.best_loss, "losses": result.losses}
@@ -225,8 +257,9 @@ def _save(path: Path, params, optimiser, result: OptimizeResult, done: int, meth
     tmp.replace(path)
 
 
-def _load(path: Path, params, optimiser, result: OptimizeResult, names: list[str], method: str) -> int:
-    """Restore a checkpoint into ``params``, ``optimiser`` and ``result``; returns the iterations done."""
+def _load(path: Path, params, optimiser, result: OptimizeResult, names: list[str], method: str):
+    """Restore a checkpoint into ``params``, ``optimiser`` and ``result``; returns the iterations done and
+    the parameters before the last step (None if the checkpoint has none)."""
     if not path.is_file():
         raise InputError(f"--resume: no checkpoint at {path}; run `cosim optimize` without --resume first")
     data = np.load(path, allow_pickle=False)
@@ -243,7 +276,8 @@ def _load(path: Path, params, optimiser, result: OptimizeResult, names: list[str
     for k in optimiser.state:
         optimiser.state[k] = data[f"opt:{k}"].copy()
     result.best_loss, result.losses, result.history = meta["best_loss"], meta["losses"], meta["history"]
-    return int(meta["done"])
+    before = {k: data[f"before:{k}"].copy() for k in params if f"before:{k}" in data.files}
+    return int(meta["done"]), before or None
 
 
 PARAM_BOUNDS = {
