@@ -189,14 +189,18 @@ def cmd_optimize(args) -> int:
     )
     _report_optimisation(summary)
     print("wrote " + ", ".join(summary["written"]))
-    return 0
+    return 1 if summary.get("stopped") else 0
 
 
 def _report_optimisation(summary: dict) -> None:
+    """The loss's first and best values; a run that stopped early (a step no halving could save) says why."""
     first, best = summary["losses"][0], summary["best_loss"]
     change = f" ({100 * (best - first) / abs(first):+.1f}%)" if first else ""
-    iterations = len(summary["losses"]) - 1
+    stopped = summary.get("stopped")
+    iterations = len(summary["losses"]) - (0 if stopped else 1)  # a finished run evaluates its final step too
     print(f"loss {first:.6e} -> {best:.6e}{change} in {iterations} iterations ({summary['wall_time_s']:.1f} s)")
+    if stopped:
+        print(f"stopped early, the best parameters so far kept: {stopped}", file=sys.stderr)
 
 
 def _assignments(args) -> list[str]:

@@ -200,3 +200,24 @@ def test_a_rollout_that_fails_before_any_step_is_reported_with_its_iteration():
     evaluate, _ = _walled_quadratic(wall=-1.0)
     with pytest.raises(SimulationError, match=r"iteration 0: the rollout failed: x = 0.0 left the domain"):
         minimise(evaluate, {"x": np.array([0.0])}, ["x"], {"x": 1.0}, 3, 1.0)
+
+
+def test_a_step_no_halving_saves_stops_the_run_with_the_best_parameters():
+    """Every rollout after the second fails: iteration 2's step and its 6 halvings all fail, so the run
+    stops there, keeps the best of the two iterations done and says why."""
+    calls = []
+
+    def evaluate(params, grad):
+        calls.append(float(params["x"][0]))
+        if len(calls) > 2:
+            raise SimulationError("the water went through the bottle")
+        x = calls[-1]
+        return (x - 3.0) ** 2, ({"x": np.array([2.0 * (x - 3.0)])} if grad else None)
+
+    result = minimise(evaluate, {"x": np.array([0.0])}, ["x"], {"x": 1.0}, 5, 1.0)
+    assert len(calls) == 2 + 1 + 6
+    assert [r["iteration"] for r in result.history] == [0, 1]
+    assert "iteration 2" in result.stopped and "halved 6 times" in result.stopped
+    assert "went through the bottle" in result.stopped
+    assert result.best_loss == min(result.losses) == (calls[1] - 3.0) ** 2
+    assert result.params["x"][0] == calls[1]

@@ -9,7 +9,8 @@ project the parameters after a step.
 A step whose rollout fails (a ``SimulationError``: material leaving the domain, the CFL or
 tracing bound, a NaN) is taken again at half its length from the parameters before it, up to
 ``MAX_HALVINGS`` times (the step-length control of a line search; the gradient is untouched);
-the iteration's row records the halvings.
+the iteration's row records the halvings. If none passes, the run stops there with the best
+parameters so far and says why (``OptimizeResult.stopped``).
 
 With a ``checkpoint`` path the parameters, the optimiser's moments and the history are
 saved after every iteration; ``resume`` continues from it, so an interrupted run ends
@@ -39,6 +40,7 @@ class OptimizeResult:
     losses: list[float] = field(default_factory=list)  # loss at each iteration's parameters, then the final one
     best_loss: float = float("inf")
     history: list[dict] = field(default_factory=list)  # one row per iteration (``minimise``)
+    stopped: str | None = None  # why the run ended before its iterations (a step no halving could save)
 
 
 class Adam:
@@ -120,7 +122,13 @@ def minimise(
 
     for it in range(start, iterations):
         t0 = time.perf_counter()
-        loss, grads, params, halvings = _evaluate_shortening(evaluate, params, before, shorten, it)
+        try:
+            loss, grads, params, halvings = _evaluate_shortening(evaluate, params, before, shorten, it)
+        except SimulationError as err:
+            if before is None:
+                raise
+            result.stopped = str(err)  # the best parameters so far stand; the caller reports why
+            return result
         row = {"iteration": it, "loss": loss, **(terms() if terms else {})}
         if halvings:
             row["step_halvings"] = halvings
@@ -147,7 +155,11 @@ def minimise(
             _save(Path(checkpoint), params, optimiser, result, it + 1, method, before)
         if on_iteration is not None:
             on_iteration(row, result.history)
-    final, _, params, _ = _evaluate_shortening(evaluate, params, before, shorten, iterations, grad=False)
+    try:
+        final, _, params, _ = _evaluate_shortening(evaluate, params, before, shorten, iterations, grad=False)
+    except SimulationError as err:
+        result.stopped = str(err)
+        return result
     result.losses.append(final)
     if final < result.best_loss:
         result.best_loss = final

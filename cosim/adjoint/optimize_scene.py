@@ -108,6 +108,7 @@ def optimize_scene(
         "losses": result.losses,
         "best_loss": result.best_loss,
         "wall_time_s": wall,
+        "stopped": result.stopped,
         "perturbation": perturbation,
         "seed": seed,
     }
