@@ -120,15 +120,23 @@ def minimise(
         half = {k: constrain(before[k] + 0.5 * (current[k] - before[k]), k, bounds, projections) for k in names}
         return {**current, **half}
 
-    for it in range(start, iterations):
-        t0 = time.perf_counter()
+    def attempt(it: int, grad: bool):
+        """``_evaluate_shortening``, or None when no halving saves the step (``result.stopped`` says why;
+        the best parameters so far stand). A failure before any step is raised."""
         try:
-            loss, grads, params, halvings = _evaluate_shortening(evaluate, params, before, shorten, it)
+            return _evaluate_shortening(evaluate, params, before, shorten, it, grad)
         except SimulationError as err:
             if before is None:
                 raise
-            result.stopped = str(err)  # the best parameters so far stand; the caller reports why
+            result.stopped = str(err)
+            return None
+
+    for it in range(start, iterations):
+        t0 = time.perf_counter()
+        evaluated = attempt(it, True)
+        if evaluated is None:
             return result
+        loss, grads, params, halvings = evaluated
         row = {"iteration": it, "loss": loss, **(terms() if terms else {})}
         if halvings:
             row["step_halvings"] = halvings
@@ -155,11 +163,10 @@ def minimise(
             _save(Path(checkpoint), params, optimiser, result, it + 1, method, before)
         if on_iteration is not None:
             on_iteration(row, result.history)
-    try:
-        final, _, params, _ = _evaluate_shortening(evaluate, params, before, shorten, iterations, grad=False)
-    except SimulationError as err:
-        result.stopped = str(err)
+    evaluated = attempt(iterations, False)
+    if evaluated is None:
         return result
+    final, _, params, _ = evaluated
     result.losses.append(final)
     if final < result.best_loss:
         result.best_loss = final
@@ -170,7 +177,8 @@ def minimise(
 def _evaluate_shortening(evaluate, params, before, shorten, it: int, grad: bool = True):
     """(loss, gradients, the parameters evaluated, halvings): ``evaluate`` at ``params``, and while its
     rollout fails after a step (``before`` is not None), at ``shorten(params)``, half as far from ``before``."""
-    for halvings in range(MAX_HALVINGS + 1):
+    halvings = 0
+    while True:
         try:
             loss, grads = evaluate(params, grad)
             return loss, grads, params, halvings
@@ -178,8 +186,7 @@ def _evaluate_shortening(evaluate, params, before, shorten, it: int, grad: bool 
             if before is None or halvings == MAX_HALVINGS:
                 tried = f" (and the step halved {halvings} times)" if halvings else ""
                 raise SimulationError(f"optimize: iteration {it}: the rollout failed{tried}: {err}") from err
-            params = shorten(params)
-    raise AssertionError("unreachable")
+            params, halvings = shorten(params), halvings + 1
 
 
 def constrain(value: np.ndarray, name: str, bounds: dict | None, projections: dict | None) -> np.ndarray:
