@@ -72,20 +72,24 @@ class MPMAdjointKernels(MPMKernels):
             base, fx, _w = self.stencil(self.x[src, p])
             weights, slopes = self.axis_weights(fx)
             affine = self.affine[g, p]
-            mom = self.particle_momentum(src, g, p, m_p, control_share)
+            # what node o received: mom + affine (o - fx) dx = at_base + steps o (``_p2g``)
+            steps = affine * self.dx
+            at_base = self.particle_momentum(src, g, p, m_p, control_share) - steps @ fx
             g_mom = ti.Vector.zero(float, self.dim)
-            g_affine = ti.Matrix.zero(float, self.dim, self.dim)
+            g_moments = ti.Matrix.zero(float, self.dim, self.dim)  # column k: sum_o w g_o o_k
             g_x = ti.Vector.zero(float, self.dim)
             for i in range(3):  # the first axis at run time, the others unrolled (``node_weight``)
                 for rest in ti.static(ti.grouped(ti.ndrange(*([3] * (self.dim - 1))))):
                     offset, weight, grad_w = self.node_weight(weights, slopes, i, rest)
-                    dpos = (offset - fx) * self.dx
                     g_node = self.grid_mom.grad[g, base + offset]
-                    g_mass = self.grid_m.grad[g, base + offset]
-                    g_mom += weight * g_node
-                    g_affine += weight * g_node.outer_product(dpos)
-                    g_x += grad_w * (g_node.dot(mom + affine @ dpos) + m_p * g_mass)
-            g_x -= affine.transpose() @ g_mom  # d dpos / dx = -I: sum_i w_i affine^T g_i, taken out of the loop
+                    weighted = weight * g_node
+                    g_mom += weighted
+                    g_moments += weighted.outer_product(offset)
+                    node_mom = self.plus_steps(at_base + i * steps[:, 0], steps, rest, 1)
+                    g_x += grad_w * (g_node.dot(node_mom) + m_p * self.grid_m.grad[g, base + offset])
+            # sum_o w g_o (o - fx)^T dx, and d dpos / dx = -I: sum_o w affine^T g_o, both out of the loop
+            g_affine = self.dx * (g_moments - g_mom.outer_product(fx))
+            g_x -= affine.transpose() @ g_mom
             # each particle owns these adjoint entries: plain adds, not atomics
             self.v.grad[src, p] = self.v.grad[src, p] + m_p * g_mom
             if ti.static(self.cfg.has_controls):
@@ -109,11 +113,10 @@ class MPMAdjointKernels(MPMKernels):
         ti.loop_config(serialize=serial)
         for p in range(self.count[None]):
             base, fx, w = self.stencil(self.x[src, p])
-            g_v = self.v.grad[dst, p]
             g_C = (4.0 * self.inv_dx) * self.C.grad[dst, p]
+            at_base = self.v.grad[dst, p] - g_C @ fx  # node o's adjoint / weight: g_v + g_C (o - fx)
             for offset in ti.static(ti.grouped(ti.ndrange(*([3] * self.dim)))):
-                weight = self.stencil_weight(w, offset)
-                g_node = weight * (g_v + g_C @ (offset - fx))
+                g_node = self.stencil_weight(w, offset) * self.plus_steps(at_base, g_C, offset, 0)
                 if ti.static(len(out.shape) == self.dim):
                     out[base + offset] += g_node
                 else:
@@ -127,15 +130,15 @@ class MPMAdjointKernels(MPMKernels):
         for p in range(self.count[None]):
             base, fx, _w = self.stencil(self.x[src, p])
             weights, slopes = self.axis_weights(fx)
-            g_v = self.v.grad[dst, p]
             g_C = (4.0 * self.inv_dx) * self.C.grad[dst, p]
+            at_base = self.v.grad[dst, p] - g_C @ fx  # at node o: g_v + g_C (o - fx)
             g_x = ti.Vector.zero(float, self.dim)
             new_v = ti.Vector.zero(float, self.dim)
             for i in range(3):  # the first axis at run time, the others unrolled (``node_weight``)
                 for rest in ti.static(ti.grouped(ti.ndrange(*([3] * (self.dim - 1))))):
                     offset, weight, grad_w = self.node_weight(weights, slopes, i, rest)
                     node_v = source.velocity(g, base + offset)
-                    g_x += grad_w * node_v.dot(g_v + g_C @ (offset - fx))
+                    g_x += grad_w * node_v.dot(self.plus_steps(at_base + i * g_C[:, 0], g_C, rest, 1))
                     new_v += weight * node_v
             # d dpos / dx = -I / dx: sum_i w_i g_C^T v_i / dx, taken out of the loop
             self.x.grad[src, p] = self.x.grad[src, p] + g_x - self.inv_dx * (g_C.transpose() @ new_v)

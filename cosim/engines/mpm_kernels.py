@@ -162,6 +162,18 @@ class MPMKernels:
         return weight
 
     @ti.func
+    def plus_steps(self, value, steps, offset: ti.template(), first: ti.template()):
+        """value + sum over k >= first of offset[k - first] steps[:, k], for a compile-time ``offset``:
+        zero offsets add nothing, the others a column. An affine field at a stencil node, a(o) = value
+        + steps (o - fx), is written so: from its value at fx and its columns, without a matrix product
+        per node (``_p2g`` and the adjoints)."""
+        out = value
+        for k in ti.static(range(first, self.dim)):
+            if ti.static(offset[k - first] > 0):
+                out += offset[k - first] * steps[:, k]
+        return out
+
+    @ti.func
     def gather_moments(self, source, g, base, w):
         """Sums over the 3^d stencil nodes n (offset o_n, weight W_n, velocity v_n = ``source.velocity``):
         ``total`` = sum W_n v_n and ``first``, whose column k is sum W_n o_n[k] v_n. APIC's affine field is
@@ -283,12 +295,8 @@ class MPMKernels:
             steps = self.affine[g, p] * self.dx
             at_base = self.particle_momentum(src, g, p, m_p, control_share) - steps @ fx
             for offset in ti.static(ti.grouped(ti.ndrange(*([3] * self.dim)))):
-                node_mom = at_base
-                for k in ti.static(range(self.dim)):
-                    if ti.static(offset[k] > 0):
-                        node_mom += offset[k] * steps[:, k]
                 weight = self.stencil_weight(w, offset)
-                self.grid_mom[g, base + offset] += weight * node_mom
+                self.grid_mom[g, base + offset] += weight * self.plus_steps(at_base, steps, offset, 0)
                 self.grid_m[g, base + offset] += weight * m_p
 
     @ti.kernel
