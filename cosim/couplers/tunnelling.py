@@ -36,14 +36,18 @@ class TunnelWatch:
         self.x0 = ti.Vector.field(d, float, shape=engine.capacity)
         self.last_normal = ti.Vector.field(d, float, shape=(engine.capacity, self.n))
         self.crossed = ti.field(ti.i32, shape=(len(engine.bodies), self.n))  # per soft body, rigid body
+        self._kept = -1  # the engine's ``state_version`` whose positions x0 holds
 
     def reset(self) -> None:
         """Forget where the particles were last seen outside (a new rollout)."""
         self.last_normal.fill(0)
 
     def begin(self) -> None:
-        """Keep the positions the coming step starts from."""
-        self._remember(self.engine.slot)
+        """Keep the positions the coming step starts from; ``step`` kept them already unless the state
+        was set since (a launch less in a plain run)."""
+        if self._kept != self.engine.state_version:
+            self._remember(self.engine.slot)
+            self._kept = self.engine.state_version
 
     def step(self, poses0: list, poses1: list) -> np.ndarray:
         """(soft bodies, rigid bodies) counts of the particles that went through each rigid body over the
@@ -53,6 +57,7 @@ class TunnelWatch:
         )
         out = np.zeros(self.crossed.shape, dtype=np.int32)
         self._watch(self.engine.slot, p0, R0, p1, R1, out)
+        self._kept = self.engine.state_version  # x0 now holds the positions the next step starts from
         return out
 
     @ti.kernel
@@ -99,6 +104,7 @@ class TunnelWatch:
                 if dz >= 0:
                     last = nz
                 self.last_normal[p, b] = last
+            self.x0[p] = e.x[slot, p]
         ti.loop_config(serialize=True)
         for i, j in ti.ndrange(*self.crossed.shape):  # handed out, not read with to_numpy (a launch more)
             out[i, j] = self.crossed[i, j]

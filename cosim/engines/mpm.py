@@ -69,6 +69,7 @@ class MPMEngine(MPMAdjointKernels):
         self._known_health = None  # the survey of the current state, once made
         self._views: list = []  # weak references to the SlotState views handed out
         self._previous_start = -1  # forward only: the slot the last step started from
+        self.state_version = 0  # changes whenever the current state does (``_forget``)
         super().__init__(config, bodies)
         self._material = self.material()  # E, nu per body now: the derived quantities' one source
 
@@ -314,6 +315,7 @@ class MPMEngine(MPMAdjointKernels):
         known of the state, and let the ``SlotState`` views of those slots that are still held read
         their keys first."""
         self._known_state = self._known_health = None
+        self.state_version += 1
         for ref in self._views:
             view = ref()
             if view is not None and view._engine is self and view._slot in written:
