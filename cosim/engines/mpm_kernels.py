@@ -81,7 +81,7 @@ class MPMKernels:
         self.grid_v = ti.Vector.field(d, float, shape=(self.n_grids, *self.nodes), needs_grad=grad)
         self.gravity = ti.Vector([float(g) for g in config.gravity])
         self.affine = ti.Matrix.field(d, d, float, shape=(self.n_grids, n), needs_grad=grad)
-        # the nodes P2G of each grid copy's substep touches: [active_lo, active_hi) per axis (``_bound_active``)
+        # the nodes the P2G of each grid copy's substep touched: [active_lo, active_hi) per axis (``_p2g``)
         self.active_lo = ti.Vector.field(d, ti.i32, shape=self.n_grids)
         self.active_hi = ti.Vector.field(d, ti.i32, shape=self.n_grids)
         # the adjoint of the grid velocities one G2P read (gradients only; see ``mpm_adjoint``)
@@ -224,20 +224,6 @@ class MPMKernels:
         E, nu = self.E[b], self.nu[b]
         return E / (2.0 * (1.0 + nu)), E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
 
-    @ti.kernel
-    def _bound_active(self, src: ti.i32, g: ti.i32):
-        """The box of nodes that P2G from slot src touches, into grid copy g's ``active_lo``/``active_hi``.
-        The grid passes loop over this box only: a body usually covers a small part of the domain (the
-        benchmark's 30k-particle block touches ~7k of a 64³ grid's 274k nodes). One thread with plain
-        min / max: contended atomics from two threads took 5x longer (measured)."""
-        self.active_lo[g] = ti.Vector(self.nodes)
-        self.active_hi[g] = ti.Vector.zero(ti.i32, self.dim)
-        ti.loop_config(serialize=True)
-        for p in range(self.count[None]):
-            base, _fx, _w = self.stencil(self.x[src, p])
-            self.active_lo[g] = ti.min(self.active_lo[g], base)
-            self.active_hi[g] = ti.max(self.active_hi[g], base + 3)
-
     def _activate_whole_grid(self) -> None:
         """Every grid copy's box made the whole grid, for good: a grid hook reads and writes every node."""
         self.active_lo.fill(0)
@@ -245,6 +231,8 @@ class MPMKernels:
 
     @ti.kernel
     def _clear_grid(self, g: ti.i32):
+        """Zero grid copy g where its last substep wrote: its box, which this substep's P2G then bounds anew.
+        Every write to a grid copy stays inside its box, so the whole copy is zero afterwards."""
         ti.loop_config(serialize=self.serial_grid_loops)
         for I in ti.grouped(
             ti.ndrange(*[(self.active_lo[g][k], self.active_hi[g][k]) for k in ti.static(range(self.dim))])
@@ -283,14 +271,35 @@ class MPMKernels:
 
     @ti.kernel
     def _p2g(
-        self, serial: ti.template(), b: ti.i32, start: ti.i32, end: ti.i32, src: ti.i32, g: ti.i32, control_share: float
+        self,
+        serial: ti.template(),
+        b: ti.i32,
+        start: ti.i32,
+        end: ti.i32,
+        src: ti.i32,
+        g: ti.i32,
+        control_share: float,
+        first_body: ti.i32,
     ):
-        """Scatter mass and momentum. ``serial``: one thread, non-atomic adds (faster than
-        atomics on CPUs); its adjoint (``cosim.engines.mpm_adjoint``) is a parallel gather."""
+        """Scatter mass and momentum, and bound the nodes written: the box [active_lo, active_hi) of grid
+        copy g, which the grid passes loop over (a body usually covers a small part of the domain: the
+        benchmark's 30k-particle block touches ~7k of a 64³ grid's 274k nodes), started afresh by the first
+        body's scatter; with a grid hook the box stays the whole grid (``_activate_whole_grid``).
+        ``serial``: one thread, non-atomic adds and min / max (Taichi demotes the atomics of a serial loop;
+        faster than contended atomics on CPUs); its adjoint (``cosim.engines.mpm_adjoint``) is a parallel
+        gather."""
+        bounded = ti.static(len(self.grid_hooks) == 0)
+        if ti.static(bounded):  # noqa: SIM102 (a compile-time test: Taichi cannot join it with a run-time one)
+            if first_body:
+                self.active_lo[g] = ti.Vector(self.nodes)
+                self.active_hi[g] = ti.Vector.zero(ti.i32, self.dim)
         ti.loop_config(serialize=serial)
         for p in range(start, end):
             m_p = self.p_mass[b]
             base, fx, w = self.stencil(self.x[src, p])
+            if ti.static(bounded):
+                ti.atomic_min(self.active_lo[g], base)
+                ti.atomic_max(self.active_hi[g], base + 3)
             # node o receives weight * (mom + affine @ (o - fx) dx) = weight * (at_base + sum_k o_k steps[:, k])
             steps = self.affine[g, p] * self.dx
             at_base = self.particle_momentum(src, g, p, m_p, control_share) - steps @ fx
@@ -301,7 +310,7 @@ class MPMKernels:
 
     @ti.kernel
     def _grid_update(self, g: ti.i32, dt: float, mass_floor: float):
-        """Momentum to velocity, gravity and domain walls over the active nodes (``_bound_active``); nodes
+        """Momentum to velocity, gravity and domain walls over the active nodes (``_p2g``); nodes
         outside keep stale velocities, which no gather reads."""
         ti.loop_config(serialize=self.serial_grid_loops)
         for I in ti.grouped(
@@ -439,15 +448,13 @@ class MPMKernels:
         for prepare in self.substep_preparers:
             prepare(src, s)
         g = self._grid_index(src)
-        if not self.grid_hooks:  # with one, the box is the whole grid (``_activate_whole_grid``)
-            self._bound_active(src, g)
-        if not self._fused_clear():  # else grid_update clears it
+        if not self._fused_clear():  # else grid_update cleared it
             self._clear_grid(g)
         for hook in self.particle_hooks:
             hook.apply(src, g, s, dt)
         for b, (mat, (lo, hi)) in enumerate(zip(self.materials, self.ranges)):
             self._stress(mat, b, lo, hi, src, g, dt)
-            self._p2g(self._serial, b, lo, hi, src, g, control_share)
+            self._p2g(self._serial, b, lo, hi, src, g, control_share, b == 0)
 
     def coupling(self, src: int, s: int, dt: float) -> None:
         """Grid update (velocities, gravity, walls), then the grid hooks in the order attached."""
