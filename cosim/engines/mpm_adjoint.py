@@ -2,10 +2,12 @@
 
 Taichi's reverse-mode autodiff of the transfer kernels unrolls the 3^d stencil
 into a large reverse program: in 3D the reverse P2G and G2P alone compiled for
-about 50 s (measured). The adjoints here are written out instead; the gathers
-loop over the stencil's first axis at run time and unroll the others
-(``node_weight``), which keeps the cold compile of a 3D float32 backward near
-30 s. The G2P adjoint is split in two: a parallel gather into the particle
+about 50 s (measured). The adjoints here are written out instead. Their gathers
+sum the stencil row by row like the forward G2P (``row_weight``, ``row_gradient``:
+a row's sums along the last axis, then its weight and the weight's gradient once),
+which halved the 3D float32 P2G and G2P adjoints against a node-by-node sum
+(2026-12-04) and compiles a cold 3D float32 backward in under 10 s. The G2P adjoint
+is split in two: a parallel gather into the particle
 position and a serial scatter onto the grid, like the forward P2G (with no grid
 hook, straight onto the grid velocity's adjoint). The per-particle stress
 and the advection with its return mapping are written out too (``_stress_adjoint``,
@@ -16,7 +18,7 @@ rules) keep Taichi's autodiff.
 
 Notation for one particle at x with stencil nodes i: weights w_i(x) (products of
 per-axis quadratic B-splines), offsets dpos_i = (i - x / dx) dx. Both depend on x:
-grad w_i is below (``node_weight``), d dpos_i / dx = -I. The base node is
+grad w_i = (1 / dx) d w_i / d fx (``row_gradient``), d dpos_i / dx = -I. The base node is
 piecewise constant in x and carries no gradient.
 """
 
@@ -41,10 +43,8 @@ class MPMAdjointKernels(MPMKernels):
     @ti.func
     def node_weight(self, weights, slopes, i, rest):
         """Stencil node offset (i, *rest), its weight and the weight's gradient [1/m] with respect to the
-        particle position, from ``axis_weights``. The adjoints loop over the first axis's ``i`` at run time
-        and unroll the other axes (``rest``, compile-time): unrolled over all 3^d nodes, the 3D float32
-        adjoints compiled for 30 s more; looped over all of them at run time (dynamic indexing of the
-        weights), they ran 1.5-2x slower (measured)."""
+        particle position, from ``axis_weights``: for the contact models' adjoints, which loop over the
+        first axis's ``i`` at run time and unroll the other axes (``rest``, compile-time)."""
         offset = ti.Vector.zero(ti.i32, self.dim)
         offset[0] = i
         w_first, s_first = weights[i, 0], slopes[i, 0]
@@ -69,27 +69,41 @@ class MPMAdjointKernels(MPMKernels):
         ti.loop_config(serialize=self.serial_particle_loops)
         for p in range(start, end):
             m_p = self.p_mass[b]
-            base, fx, _w = self.stencil(self.x[src, p])
-            weights, slopes = self.axis_weights(fx)
+            base, fx, w = self.stencil(self.x[src, p])
+            slopes = self.stencil_slopes(fx)
             affine = self.affine[g, p]
             # what node o received: mom + affine (o - fx) dx = at_base + steps o (``_p2g``)
             steps = affine * self.dx
             at_base = self.particle_momentum(src, g, p, m_p, control_share) - steps @ fx
-            g_mom = ti.Vector.zero(float, self.dim)
-            g_moments = ti.Matrix.zero(float, self.dim, self.dim)  # column k: sum_o w g_o o_k
-            g_x = ti.Vector.zero(float, self.dim)
-            for i in range(3):  # the first axis at run time, the others unrolled (``node_weight``)
-                for rest in ti.static(ti.grouped(ti.ndrange(*([3] * (self.dim - 1))))):
-                    offset, weight, grad_w = self.node_weight(weights, slopes, i, rest)
-                    g_node = self.grid_mom.grad[g, base + offset]
-                    weighted = weight * g_node
-                    g_mom += weighted
-                    g_moments += weighted.outer_product(offset)
-                    node_mom = self.plus_steps(at_base + i * steps[:, 0], steps, rest, 1)
-                    g_x += grad_w * (g_node.dot(node_mom) + m_p * self.grid_m.grad[g, base + offset])
-            # sum_o w g_o (o - fx)^T dx, and d dpos / dx = -I: sum_o w affine^T g_o, both out of the loop
-            g_affine = self.dx * (g_moments - g_mom.outer_product(fx))
-            g_x -= affine.transpose() @ g_mom
+            d = ti.static(self.dim)
+            g_mom = ti.Vector.zero(float, d)
+            columns = [ti.Vector.zero(float, d) for _ in ti.static(range(d))]  # column k: sum_o W g_o o_k
+            g_fx = ti.Vector.zero(float, d)  # d/d fx of sum_o W_o h_o, h_o = g_o . (what o received) + m g_m,o
+            for row in ti.static(self.rows):  # row by row (``row_weight``)
+                row_base = self.plus_steps(at_base, steps, row, 0)
+                along_g = ti.Vector.zero(float, d)
+                moment_g = ti.Vector.zero(float, d)
+                along_h, slope_h = 0.0, 0.0
+                for c in ti.static(range(3)):
+                    node = base + self.row_node(row, c)
+                    g_node = self.grid_mom.grad[g, node]
+                    h = g_node.dot(self.plus_steps(row_base, steps, [c], d - 1)) + m_p * self.grid_m.grad[g, node]
+                    weighted = w[c][d - 1] * g_node
+                    along_g += weighted
+                    if ti.static(c > 0):
+                        moment_g += c * weighted
+                    along_h += w[c][d - 1] * h
+                    slope_h += slopes[c][d - 1] * h
+                w_row = self.row_weight(w, row)
+                g_mom += w_row * along_g
+                columns[d - 1] += w_row * moment_g
+                for k in ti.static(range(d - 1)):
+                    if ti.static(row[k] > 0):
+                        columns[k] += (row[k] * w_row) * along_g
+                g_fx += self.row_gradient(w, slopes, row, along_h, slope_h)
+            # sum_o W g_o (o - fx)^T dx, and d dpos / dx = -I: sum_o W affine^T g_o, both out of the loop
+            g_affine = self.dx * (ti.Matrix.cols(columns) - g_mom.outer_product(fx))
+            g_x = self.inv_dx * g_fx - affine.transpose() @ g_mom
             # each particle owns these adjoint entries: plain adds, not atomics
             self.v.grad[src, p] = self.v.grad[src, p] + m_p * g_mom
             if ti.static(self.cfg.has_controls):
@@ -128,18 +142,26 @@ class MPMAdjointKernels(MPMKernels):
         a parallel gather, each particle owning its entry."""
         ti.loop_config(serialize=self.serial_particle_loops)
         for p in range(self.count[None]):
-            base, fx, _w = self.stencil(self.x[src, p])
-            weights, slopes = self.axis_weights(fx)
+            base, fx, w = self.stencil(self.x[src, p])
+            slopes = self.stencil_slopes(fx)
             g_C = (4.0 * self.inv_dx) * self.C.grad[dst, p]
             at_base = self.v.grad[dst, p] - g_C @ fx  # at node o: g_v + g_C (o - fx)
-            g_x = ti.Vector.zero(float, self.dim)
-            new_v = ti.Vector.zero(float, self.dim)
-            for i in range(3):  # the first axis at run time, the others unrolled (``node_weight``)
-                for rest in ti.static(ti.grouped(ti.ndrange(*([3] * (self.dim - 1))))):
-                    offset, weight, grad_w = self.node_weight(weights, slopes, i, rest)
-                    node_v = source.velocity(g, base + offset)
-                    g_x += grad_w * node_v.dot(self.plus_steps(at_base + i * g_C[:, 0], g_C, rest, 1))
-                    new_v += weight * node_v
+            d = ti.static(self.dim)
+            g_fx = ti.Vector.zero(float, d)  # d/d fx of sum_o W_o h_o, h_o = v_o . (g_v + g_C (o - fx))
+            new_v = ti.Vector.zero(float, d)
+            for row in ti.static(self.rows):  # row by row (``row_weight``)
+                row_base = self.plus_steps(at_base, g_C, row, 0)
+                along_v = ti.Vector.zero(float, d)
+                along_h, slope_h = 0.0, 0.0
+                for c in ti.static(range(3)):
+                    node_v = source.velocity(g, base + self.row_node(row, c))
+                    h = node_v.dot(self.plus_steps(row_base, g_C, [c], d - 1))
+                    along_v += w[c][d - 1] * node_v
+                    along_h += w[c][d - 1] * h
+                    slope_h += slopes[c][d - 1] * h
+                new_v += self.row_weight(w, row) * along_v
+                g_fx += self.row_gradient(w, slopes, row, along_h, slope_h)
+            g_x = self.inv_dx * g_fx
             # d dpos / dx = -I / dx: sum_i w_i g_C^T v_i / dx, taken out of the loop
             self.x.grad[src, p] = self.x.grad[src, p] + g_x - self.inv_dx * (g_C.transpose() @ new_v)
 
