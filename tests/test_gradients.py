@@ -68,6 +68,19 @@ def test_adjoint_matches_finite_differences_2d(objective, param):
         assert r.relative_error < TOL, r
 
 
+def test_material_gradients_are_skipped_only_when_not_asked_for(objective):
+    """Without material parameters the adjoint skips dL/dE and dL/dnu (the costliest part of the stress
+    adjoint); the gradients asked for are the same as when they are computed."""
+    params = objective.initial_params()
+    asked = {"v0": params["v0"], "impulse": params["impulse"]}
+    _, without = objective.evaluate(asked, grad=True)
+    assert not objective.system.mpm.material_grads
+    _, with_material = objective.evaluate({**asked, "E": params["E"]}, grad=True)
+    assert objective.system.mpm.material_grads and np.abs(with_material["E"]).max() > 0
+    for key in asked:
+        np.testing.assert_array_equal(without[key], with_material[key])
+
+
 def test_plastic_body_yields_during_the_gradient_rollout(objective):
     """The return mapping is on the differentiated path: some dough particles sit on the yield surface.
 

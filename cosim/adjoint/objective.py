@@ -130,6 +130,14 @@ class Objective:
         self.system.rollout(impulses, actions, self.tape if record else None, on_step)
         return self.system.state()
 
+    def _want_material_grads(self, params: dict[str, np.ndarray]) -> None:
+        """Let each engine that can skip them (``material_grads``) compute material gradients only when
+        ``params`` holds one of its material parameters (the others' vjp then reports zeros)."""
+        wanted = {self.parameters[name].engine for name in params if self.parameters[name].kind == "material"}
+        for name, engine in self.engines.items():
+            if hasattr(engine, "material_grads"):
+                engine.material_grads = name in wanted
+
     def evaluate(self, params: dict[str, np.ndarray], grad: bool = False):
         """Loss value, and with ``grad`` its gradient per parameter (same shapes). Running loss
         terms are evaluated at every macro step's state, their gradients fed into the tape's
@@ -148,6 +156,7 @@ class Objective:
         value += sum(v for v, _g in running)
         if not grad:
             return value, None
+        self._want_material_grads(params)
         g = self.tape.backward(
             self.system.vjp, dstate, [g for _v, g in running] or None, self.system.restore_checkpoints
         )

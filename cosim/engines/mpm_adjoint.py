@@ -178,7 +178,15 @@ class MPMAdjointKernels(MPMKernels):
 
     @ti.kernel
     def _stress_adjoint(
-        self, mat: ti.template(), b: ti.i32, start: ti.i32, end: ti.i32, src: ti.i32, g: ti.i32, dt: float
+        self,
+        mat: ti.template(),
+        b: ti.i32,
+        start: ti.i32,
+        end: ti.i32,
+        src: ti.i32,
+        g: ti.i32,
+        dt: float,
+        material_grads: ti.template(),
     ):
         """Adjoint of ``_stress`` (affine = s tau(F, C, mu, lam) + m_p C, s = -dt V0 4 / dx^2): from
         dL/d(affine) to dL/dF, dL/dC and the body's dL/dE, dL/dnu (through the Lame parameters)."""
@@ -193,11 +201,20 @@ class MPMAdjointKernels(MPMKernels):
             )
             self.F.grad[src, p] = self.F.grad[src, p] + F_bar
             self.C.grad[src, p] = self.C.grad[src, p] + C_bar + m_p * affine_bar
-            self._lame_grad(b, mu_bar, lam_bar)
+            if ti.static(material_grads):
+                self._lame_grad(b, mu_bar, lam_bar)
 
     @ti.kernel
     def _advect_adjoint(
-        self, mat: ti.template(), b: ti.i32, start: ti.i32, end: ti.i32, src: ti.i32, dst: ti.i32, dt: float
+        self,
+        mat: ti.template(),
+        b: ti.i32,
+        start: ti.i32,
+        end: ti.i32,
+        src: ti.i32,
+        dst: ti.i32,
+        dt: float,
+        material_grads: ti.template(),
     ):
         """Adjoint of the advection in ``_g2p_advect`` (x' = x + dt v', F' = project((I + dt C') F)): from dL/dx', dL/dF' to
         dL/dx, dL/dv', dL/dC', dL/dF and the body's dL/dE, dL/dnu (a plastic body's yield limit
@@ -213,8 +230,9 @@ class MPMAdjointKernels(MPMKernels):
             trial_bar, mu_bar, lam_bar = mat.project_vjp(step @ F, mu, lam, self.yield_stress[b], self.F.grad[dst, p])
             self.C.grad[dst, p] = self.C.grad[dst, p] + dt * trial_bar @ F.transpose()
             self.F.grad[src, p] = self.F.grad[src, p] + step.transpose() @ trial_bar
-            if ti.static(mat.project_uses_lame):  # else a zero added to E and nu by every particle
-                self._lame_grad(b, mu_bar, lam_bar)
+            if ti.static(mat.project_uses_lame):  # noqa: SIM102 (compile-time; else a zero added to E and nu by every particle)
+                if ti.static(material_grads):
+                    self._lame_grad(b, mu_bar, lam_bar)
 
     @ti.func
     def _lame_grad(self, b, mu_bar, lam_bar):
@@ -242,7 +260,7 @@ class MPMAdjointKernels(MPMKernels):
         self._zero_grid_grad(s)
         for b in reversed(range(len(self.bodies))):
             lo, hi = self.ranges[b]
-            self._advect_adjoint(self.materials[b], b, lo, hi, s, s + 1, dt)
+            self._advect_adjoint(self.materials[b], b, lo, hi, s, s + 1, dt, self.material_grads)
         self._g2p_adjoint_position(s, s + 1, s, self._grid_out)
         if self._grid_out is self:  # no grid hook: straight onto the grid velocity's adjoint
             self._g2p_adjoint_scatter(self._serial, s, s + 1, s, self.grid_v.grad)
@@ -255,7 +273,7 @@ class MPMAdjointKernels(MPMKernels):
         for b in reversed(range(len(self.bodies))):
             lo, hi = self.ranges[b]
             self._p2g_adjoint(b, lo, hi, s, s, control_share)
-            self._stress_adjoint(self.materials[b], b, lo, hi, s, s, dt)
+            self._stress_adjoint(self.materials[b], b, lo, hi, s, s, dt, self.material_grads)
         for hook in reversed(self.particle_hooks):
             hook.apply_grad(s, s, s, dt)
         for prepare_grad in reversed(self.substep_preparer_grads):
