@@ -63,6 +63,9 @@ class GridContact:
             self.liquid = ti.Vector.field(2, float, shape=engine.grid_m.shape, needs_grad=grad)
             self.solid = ti.field(float, shape=engine.grid_m.shape, needs_grad=grad)
             self.scratch = [self.liquid, self.solid]  # zeroed by the engine with the grid each substep
+            # the solid share is read at a node's neighbours and written next to liquid (``_occupy``,
+            # ``_liquid_reach``): one node beyond the nodes the particles reach
+            self.box_margin = 1
         self.upstream = engine.attach_grid_hook(self)
 
     def _held_by_liquid(self, source) -> bool:
@@ -145,7 +148,7 @@ class GridContact:
         most 1): the solid the liquid's fill is read against (``_liquid_reach``)."""
         e = self.engine
         ti.loop_config(serialize=e.serial_grid_loops)
-        for I in ti.grouped(ti.ndrange(*e.nodes)):
+        for I in ti.grouped(ti.ndrange(*[(e.active_lo[g][k], e.active_hi[g][k]) for k in ti.static(range(e.dim))])):
             if self._near_liquid(g, I):
                 xi = ti.cast(I, float) * e.dx
                 inside = 0.0
@@ -179,7 +182,7 @@ class GridContact:
     def _apply(self, g: ti.i32, s: ti.i32, dt: float):
         e = self.engine
         ti.loop_config(serialize=e.serial_grid_loops)
-        for I in ti.grouped(ti.ndrange(*e.nodes)):
+        for I in ti.grouped(ti.ndrange(*[(e.active_lo[g][k], e.active_hi[g][k]) for k in ti.static(range(e.dim))])):
             v = self.upstream.velocity(g, I)
             m = e.grid_m[g, I]
             xi = ti.cast(I, float) * e.dx

@@ -89,13 +89,15 @@ class MPMEngine(MPMAdjointKernels):
         Fields listed in ``hook.scratch`` (grid-shaped vectors) are zeroed with the grid at
         the start of each substep. Methods: ``apply(src, g, s, dt)`` for substep s of the
         macro step, particles in slot src, grid copy g; ``apply_grad(src, g, s, dt)``;
-        ``zero_grad()`` (its own adjoints only).
+        ``zero_grad()`` (its own adjoints only). Its grid passes loop over grid copy g's box
+        [``active_lo[g]``, ``active_hi[g]``), the nodes the particles reach (``_clear_grid``); a hook
+        that reads or writes nodes up to k beyond them sets ``hook.box_margin = k``.
         """
         self._check_unspecialised("grid hooks")
         upstream = self._grid_out
         self.grid_hooks.append(hook)
         self._grid_out = hook
-        self._activate_whole_grid()
+        self.box_margin = max(self.box_margin, int(getattr(hook, "box_margin", 0)))
         return upstream
 
     def attach_particle_hook(self, hook) -> None:

@@ -170,9 +170,12 @@ class MPMAdjointKernels(MPMKernels):
         """Hand the adjoint of the gathered velocities to their source (``velocity_grad``: the
         engine's grid velocity or the last grid hook, which passes it upstream) and clear it.
         A grid pass of its own: inside the G2P adjoint's stencil loop, the hooks' adjoint chain
-        took 10 s to compile in 3D (measured), this pass 1 s."""
+        took 10 s to compile in 3D (measured), this pass 1 s. Over grid copy g's box: the G2P adjoint
+        wrote nothing outside it."""
         ti.loop_config(serialize=self.serial_grid_loops)
-        for I in ti.grouped(ti.ndrange(*self.nodes)):
+        for I in ti.grouped(
+            ti.ndrange(*[(self.active_lo[g][k], self.active_hi[g][k]) for k in ti.static(range(self.dim))])
+        ):
             source.velocity_grad(g, I, self.gathered_grad[I])
             self.gathered_grad[I] = ti.Vector.zero(float, self.dim)
 
@@ -245,7 +248,7 @@ class MPMAdjointKernels(MPMKernels):
 
     @ti.kernel
     def _zero_grid_grad(self, g: ti.i32):
-        """Zero grid copy g's adjoints over its active nodes (``_bound_active``): only they are read and
+        """Zero grid copy g's adjoints over its box (``_clear_grid``): only its nodes are read and
         written by its substep's adjoint, so no fill of all K grids."""
         ti.loop_config(serialize=self.serial_grid_loops)
         for I in ti.grouped(

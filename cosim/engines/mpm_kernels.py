@@ -117,6 +117,7 @@ class MPMKernels:
         # (``Objective.evaluate``), which saved 0.5-1 ms of a 2.4-3 ms 3D float32 stress adjoint (measured)
         self.material_grads = True
         self.grid_hooks: list = []  # contact models rewriting grid velocities, in order
+        self.box_margin = 0  # nodes added around the box P2G bounds: the largest any grid hook asks for
         self.particle_hooks: list = []  # contact models adding momentum in P2G
         self.substep_preparers: list = []  # boundary sources' before_substep(src, s), run on the host
         self.substep_preparer_grads: list = []  # their before_substep_grad(src, s), if differentiable
@@ -262,15 +263,15 @@ class MPMKernels:
         E, nu = self.E[b], self.nu[b]
         return E / (2.0 * (1.0 + nu)), E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
 
-    def _activate_whole_grid(self) -> None:
-        """Every grid copy's box made the whole grid, for good: a grid hook reads and writes every node."""
-        self.active_lo.fill(0)
-        self.active_hi.from_numpy(np.tile(np.array(self.nodes, dtype=np.int32), (self.n_grids, 1)))
-
     @ti.kernel
     def _clear_grid(self, g: ti.i32):
         """Zero grid copy g where its last substep wrote: its box, which this substep's P2G then bounds anew.
-        Every write to a grid copy stays inside its box, so the whole copy is zero afterwards."""
+        Every write to a grid copy stays inside its box, so the whole copy is zero afterwards. Every pass
+        over a grid copy (this clear, the grid update, the grid hooks, their adjoints) loops over its box,
+        ``ti.grouped(ti.ndrange(*[(active_lo[g][k], active_hi[g][k]) ...]))``: the nodes outside hold no
+        material and no gather reads them. (Written out in each kernel: Taichi cannot return a range from
+        a ``ti.func``, and a ``ti.func`` computing the bounds before the loop breaks Taichi's autodiff of
+        the grid update.)"""
         ti.loop_config(serialize=self.serial_grid_loops)
         for I in ti.grouped(
             ti.ndrange(*[(self.active_lo[g][k], self.active_hi[g][k]) for k in ti.static(range(self.dim))])
@@ -322,22 +323,20 @@ class MPMKernels:
         """Scatter mass and momentum, and bound the nodes written: the box [active_lo, active_hi) of grid
         copy g, which the grid passes loop over (a body usually covers a small part of the domain: the
         benchmark's 30k-particle block touches ~7k of a 64³ grid's 274k nodes), started afresh by the first
-        body's scatter; with a grid hook the box stays the whole grid (``_activate_whole_grid``).
-        ``serial``: one thread, non-atomic adds and min / max (Taichi demotes the atomics of a serial loop;
-        faster than contended atomics on CPUs); its adjoint (``cosim.engines.mpm_adjoint``) is a parallel
-        gather."""
-        bounded = ti.static(len(self.grid_hooks) == 0)
-        if ti.static(bounded):  # noqa: SIM102 (a compile-time test: Taichi cannot join it with a run-time one)
-            if first_body:
-                self.active_lo[g] = ti.Vector(self.nodes)
-                self.active_hi[g] = ti.Vector.zero(ti.i32, self.dim)
+        body's scatter, widened by ``box_margin`` nodes on every side (a grid hook reading a node's
+        neighbours asks for it) within the grid. ``serial``: one thread, non-atomic adds and min / max
+        (Taichi demotes the atomics of a serial loop; faster than contended atomics on CPUs); its adjoint
+        (``cosim.engines.mpm_adjoint``) is a parallel gather."""
+        margin = ti.static(self.box_margin)
+        if first_body:
+            self.active_lo[g] = ti.Vector(self.nodes)
+            self.active_hi[g] = ti.Vector.zero(ti.i32, self.dim)
         ti.loop_config(serialize=serial)
         for p in range(start, end):
             m_p = self.p_mass[b]
             base, fx, w = self.stencil(self.x[src, p])
-            if ti.static(bounded):
-                ti.atomic_min(self.active_lo[g], base)
-                ti.atomic_max(self.active_hi[g], base + 3)
+            ti.atomic_min(self.active_lo[g], base - margin)
+            ti.atomic_max(self.active_hi[g], base + 3 + margin)
             # node o receives weight * (mom + affine @ (o - fx) dx) = weight * (at_base + sum_k o_k steps[:, k])
             steps = self.affine[g, p] * self.dx
             at_base = self.particle_momentum(src, g, p, m_p, control_share) - steps @ fx
@@ -345,6 +344,9 @@ class MPMKernels:
                 weight = self.stencil_weight(w, offset)
                 self.grid_mom[g, base + offset] += weight * self.plus_steps(at_base, steps, offset, 0)
                 self.grid_m[g, base + offset] += weight * m_p
+        if ti.static(margin > 0):  # the widened box kept inside the grid
+            self.active_lo[g] = ti.max(self.active_lo[g], 0)
+            self.active_hi[g] = ti.min(self.active_hi[g], ti.Vector(self.nodes))
 
     @ti.kernel
     def _grid_update(self, g: ti.i32, dt: float, mass_floor: float):
