@@ -103,6 +103,9 @@ class ClothBoundary:
         self.vel = ti.Vector.field(3, float, shape=V, needs_grad=grad)
         self.impulse = ti.Vector.field(3, float, shape=V, needs_grad=grad)
         self.node_face = ti.field(ti.i32, shape=engine.nodes)
+        # whether a contact model asks about grid nodes (p = -1; the grid model sets it): only then is each
+        # node's nearest face queried in ``write`` (1.4 ms of a 31.6 ms towel_squash step, which has none)
+        self.queries_nodes = False
         # each traced particle's blended contact frame per substep slot (``_blend``)
         self.blend_width = BLEND * self.band
         self.tracer.cutoff = CUTOFF * self.blend_width
@@ -280,7 +283,8 @@ class ClothBoundary:
         self.impulse.fill(0)
         self.tracer.mesh_moved(x)
         self.tracer.set_state(states.get("tracking"))
-        self._query_nodes()
+        if self.queries_nodes:
+            self._query_nodes()
 
     def before_substep(self, src: int, s: int) -> None:
         """Trace the particles in slot ``src`` for substep s (s = 0: the mesh moved, the particles not),

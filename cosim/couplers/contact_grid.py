@@ -50,6 +50,9 @@ class GridContact:
     def __init__(self, engine, sources: list, friction: float, band: float | None = None, support: str = "material"):
         self.engine = engine
         self.sources = list(sources)
+        for source in self.sources:  # this model asks about grid nodes (p = -1)
+            if hasattr(source, "queries_nodes"):
+                source.queries_nodes = True
         self.friction = float(friction)
         if support not in GRID_SUPPORT:
             raise ValueError(f"grid support must be one of {GRID_SUPPORT}, got {support!r}")
