@@ -9,7 +9,8 @@ A parallel loop on a CPU costs a dispatch to Taichi's thread pool and back, 50-1
 2-core Intel Xeon VM); a loop with less work than that runs faster on the launching thread. So
 on a CPU, loops over fewer than ``PARALLEL_MIN_PARTICLES`` particles or ``PARALLEL_MIN_NODES``
 grid nodes are serial (a small scene such as pull_door's 78 particles paid the dispatch in every
-one of its ~29 loops a step). On a GPU every loop is parallel. Taichi's own start-up options by
+one of its ~29 loops a step), and so are a small engine's grid loops, which cover only its
+particles' box (``MPMKernels``). On a GPU every loop is parallel. Taichi's own start-up options by
 arch (threads, cache) are in ``cosim.runtime.init_options``.
 """
 
