@@ -161,6 +161,7 @@ class ForecastContact:
         self.constrained = ti.field(ti.i32, shape=per_particle)
         self.correction = ti.Vector.field(d, float, shape=engine.grid_v.shape, needs_grad=grad)
         self.scratch = [self.correction]  # zeroed by the engine with the grid each substep
+        self.grid_adjoints = [self.correction]  # their adjoints too, in each substep's adjoint
         # benchmarks: the objective (before, after) the gradient step, per substep (a host sync each)
         self.track_objective = False
         self.objective_terms: list[tuple[float, float]] = []
@@ -347,7 +348,9 @@ class ForecastContact:
         self._gather_adjoint(src, g)
 
     def zero_grad(self) -> None:
-        for fld in (self.v_init, self.residual, self.correction):
+        """The per-particle adjoints (the correction's, grid-shaped, are zeroed per substep by the engine:
+        ``grid_adjoints``; its fill over all grid copies was 2.5 ms of a 12 ms pour_water backward step)."""
+        for fld in (self.v_init, self.residual):
             fld.grad.fill(0)
 
 

@@ -69,6 +69,8 @@ class GridContact:
             # the solid share is read at a node's neighbours and written next to liquid (``_occupy``,
             # ``_liquid_reach``): one node beyond the nodes the particles reach
             self.box_margin = 1
+        # grid-shaped fields whose adjoints the engine zeroes over the box in each substep's adjoint
+        self.grid_adjoints = [self.output] + ([self.liquid, self.solid] if self.liquid is not None else [])
         self.upstream = engine.attach_grid_hook(self)
 
     def _held_by_liquid(self, source) -> bool:
@@ -230,7 +232,4 @@ class GridContact:
             self._liquid_adjoint(src, g)
 
     def zero_grad(self) -> None:
-        self.output.grad.fill(0)
-        if self.liquid is not None:
-            self.liquid.grad.fill(0)
-            self.solid.grad.fill(0)
+        """Nothing: this model's adjoints are all grid-shaped, zeroed per substep by the engine (``grid_adjoints``)."""

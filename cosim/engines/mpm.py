@@ -87,7 +87,8 @@ class MPMEngine(MPMAdjointKernels):
         adjoint needs the input); G2P gathers from the last hook's ``@ti.func velocity(g, I)`` and
         scatters its adjoint through the hook's ``@ti.func velocity_grad(g, I, g_v)``.
         Fields listed in ``hook.scratch`` (grid-shaped vectors) are zeroed with the grid at
-        the start of each substep. Methods: ``apply(src, g, s, dt)`` for substep s of the
+        the start of each substep, the adjoints of those in ``hook.grid_adjoints`` at the
+        start of each substep's adjoint. Methods: ``apply(src, g, s, dt)`` for substep s of the
         macro step, particles in slot src, grid copy g; ``apply_grad(src, g, s, dt)``;
         ``zero_grad()`` (its own adjoints only). Its grid passes loop over grid copy g's box
         [``active_lo[g]``, ``active_hi[g]``), the nodes the particles reach (``_clear_grid``); a hook

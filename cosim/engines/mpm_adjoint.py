@@ -248,7 +248,8 @@ class MPMAdjointKernels(MPMKernels):
 
     @ti.kernel
     def _zero_grid_grad(self, g: ti.i32):
-        """Zero grid copy g's adjoints over its box (``_clear_grid``): only its nodes are read and
+        """Zero grid copy g's adjoints, and its grid hooks' (``grid_adjoints``), over its box (``_clear_grid``):
+        only its nodes are read and
         written by its substep's adjoint, so no fill of all K grids."""
         ti.loop_config(serialize=self.serial_grid_loops)
         for I in ti.grouped(
@@ -257,6 +258,8 @@ class MPMAdjointKernels(MPMKernels):
             self.grid_mom.grad[g, I] = ti.Vector.zero(float, self.dim)
             self.grid_m.grad[g, I] = 0.0
             self.grid_v.grad[g, I] = ti.Vector.zero(float, self.dim)
+            for fld in ti.static(self._hook_grid_adjoints()):  # a fill of all K grid copies cost more
+                fld.grad[g, I] = ti.zero(fld.grad[g, I])
 
     def _substep_grad(self, s: int, dt: float, control_share: float) -> None:
         """Adjoint of substep s (slots s -> s + 1); its grid and stress copies are still held."""

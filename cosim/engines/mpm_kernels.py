@@ -477,6 +477,10 @@ class MPMKernels:
         """Grid-shaped vector fields of the grid hooks that the grid clear zeroes each substep."""
         return [fld for hook in self.grid_hooks for fld in getattr(hook, "scratch", ())]
 
+    def _hook_grid_adjoints(self) -> list:
+        """Grid-shaped fields of the grid hooks whose adjoints the substep's adjoint zeroes over the box."""
+        return [fld for hook in self.grid_hooks for fld in getattr(hook, "grid_adjoints", ())]
+
     def _fused_clear(self) -> bool:
         """Forward-only engines without a grid hook clear the grid inside grid_update."""
         return not self.cfg.requires_grad and not self.grid_hooks
