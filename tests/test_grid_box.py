@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from conftest import SCENES
 
+from cosim.engines import arch
 from cosim.scene import load_scene
 from cosim.scene.build import build_system
 
@@ -40,5 +41,20 @@ def test_the_box_loses_nothing_against_the_whole_grid(name):
     whole, extent_whole, _ = rollout(name, 12, WHOLE_GRID)
     assert (extent_whole == nodes).all()
     assert np.prod(extent) < 0.5 * np.prod(nodes)  # the box is the smaller: the comparison means something
+    for key, values in boxed.items():
+        np.testing.assert_allclose(values, whole[key], rtol=0, atol=1e-12 * max(np.abs(whole[key]).max(), 1.0))
+
+
+def test_a_gpu_passes_over_the_whole_grid_with_the_same_result(monkeypatch):
+    """On a GPU the scatter does not bound the box (every thread's atomic min / max would contend on
+    two entries): the grid passes cover the whole grid. That path, forced on the CPU, gives the same
+    particles as the bounded one."""
+    assert not arch.choices_for("cuda").bounded_grid_passes and arch.choices_for("cpu").bounded_grid_passes
+    boxed, extent, nodes = rollout("shake_container_2d", 12, None)
+    cpu = arch.choices_for("cpu")
+    unbounded = arch.ArchChoices(cpu.serial_scatter, cpu.parallel_min_particles, cpu.parallel_min_nodes)
+    monkeypatch.setattr(arch, "choices_for", lambda name: unbounded)
+    whole, extent_whole, _ = rollout("shake_container_2d", 12, None)
+    assert (extent_whole == nodes).all() and np.prod(extent) < 0.5 * np.prod(nodes)
     for key, values in boxed.items():
         np.testing.assert_allclose(values, whole[key], rtol=0, atol=1e-12 * max(np.abs(whole[key]).max(), 1.0))

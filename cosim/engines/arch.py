@@ -30,6 +30,10 @@ class ArchChoices:
     serial_scatter: bool  # one thread, non-atomic adds (CPU) instead of parallel atomic adds (GPU)
     parallel_min_particles: int = 0  # particle loops over fewer particles run on one thread
     parallel_min_nodes: int = 0  # grid loops over fewer nodes run on one thread
+    # grid passes over the box of nodes the particles reach, which the scatter bounds with a min / max
+    # per particle (plain on one CPU thread); a GPU passes over the whole grid in a few microseconds,
+    # where every thread's atomic min / max on the same two entries would contend
+    bounded_grid_passes: bool = False
 
     def serial_particles(self, n: int) -> bool:
         """Whether loops over ``n`` particles should run on one thread."""
@@ -43,7 +47,7 @@ class ArchChoices:
 def choices_for(arch: str) -> ArchChoices:
     """The choices for ``arch``: 'cpu' (or Taichi's 'x64', 'arm64'), 'cuda', 'gpu', 'vulkan', ..."""
     if arch in CPU_ARCHES:
-        return ArchChoices(True, PARALLEL_MIN_PARTICLES, PARALLEL_MIN_NODES)
+        return ArchChoices(True, PARALLEL_MIN_PARTICLES, PARALLEL_MIN_NODES, bounded_grid_passes=True)
     return ArchChoices(False)
 
 

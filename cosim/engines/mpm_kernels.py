@@ -112,6 +112,9 @@ class MPMKernels:
         # loops too short to repay a CPU thread-pool dispatch run on the launching thread (``arch``); hooks
         # looping over this engine's particles or nodes follow the same two flags
         self.serial_particle_loops = choices.serial_particles(self.n_particles)
+        self.bounded_grid = choices.bounded_grid_passes  # else every grid pass covers the whole grid (GPU)
+        if not self.bounded_grid:
+            self.active_hi.from_numpy(np.tile(np.array(self.nodes, dtype=np.int32), (self.n_grids, 1)))
         # the grid passes cover the particles' box (``_clear_grid``), which few particles keep small: a
         # small engine's grid loops are serial on any grid (pour_water, 469 particles on 48³: 5.0 -> 3.6 ms
         # a step, measured). Few particles spread over a large grid would make them slower than parallel.
@@ -331,15 +334,18 @@ class MPMKernels:
         (Taichi demotes the atomics of a serial loop; faster than contended atomics on CPUs); its adjoint
         (``cosim.engines.mpm_adjoint``) is a parallel gather."""
         margin = ti.static(self.box_margin)
-        if first_body:
-            self.active_lo[g] = ti.Vector(self.nodes)
-            self.active_hi[g] = ti.Vector.zero(ti.i32, self.dim)
+        bounded = ti.static(self.bounded_grid)  # else the box stays the whole grid (``arch``)
+        if ti.static(bounded):  # noqa: SIM102 (a compile-time test: Taichi cannot join it with a run-time one)
+            if first_body:
+                self.active_lo[g] = ti.Vector(self.nodes)
+                self.active_hi[g] = ti.Vector.zero(ti.i32, self.dim)
         ti.loop_config(serialize=serial)
         for p in range(start, end):
             m_p = self.p_mass[b]
             base, fx, w = self.stencil(self.x[src, p])
-            ti.atomic_min(self.active_lo[g], base - margin)
-            ti.atomic_max(self.active_hi[g], base + 3 + margin)
+            if ti.static(bounded):
+                ti.atomic_min(self.active_lo[g], base - margin)
+                ti.atomic_max(self.active_hi[g], base + 3 + margin)
             # node o receives weight * (mom + affine @ (o - fx) dx) = weight * (at_base + sum_k o_k steps[:, k])
             steps = self.affine[g, p] * self.dx
             at_base = self.particle_momentum(src, g, p, m_p, control_share) - steps @ fx
@@ -347,9 +353,10 @@ class MPMKernels:
                 weight = self.stencil_weight(w, offset)
                 self.grid_mom[g, base + offset] += weight * self.plus_steps(at_base, steps, offset, 0)
                 self.grid_m[g, base + offset] += weight * m_p
-        if ti.static(margin > 0):  # the widened box kept inside the grid
-            self.active_lo[g] = ti.max(self.active_lo[g], 0)
-            self.active_hi[g] = ti.min(self.active_hi[g], ti.Vector(self.nodes))
+        if ti.static(bounded):  # noqa: SIM102 (compile-time tests)
+            if ti.static(margin > 0):  # the widened box kept inside the grid
+                self.active_lo[g] = ti.max(self.active_lo[g], 0)
+                self.active_hi[g] = ti.min(self.active_hi[g], ti.Vector(self.nodes))
 
     @ti.kernel
     def _grid_update(self, g: ti.i32, dt: float, mass_floor: float):
