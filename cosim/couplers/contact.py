@@ -255,7 +255,7 @@ class ForecastContact:
                 r = self.residual[g, p]
                 g_r = ti.Vector.zero(float, e.dim)
                 g_x = ti.Vector.zero(float, e.dim)
-                for i in range(3):  # the stencil as in the engine's adjoints (``node_weight``)
+                for i in range(3):  # first axis at run time, the others unrolled (``node_weight``)
                     for rest in ti.static(ti.grouped(ti.ndrange(*([3] * (e.dim - 1))))):
                         offset, weight, grad_w = e.node_weight(weights, slopes, i, rest)
                         g_corr = self.correction.grad[g, base + offset]
@@ -276,7 +276,7 @@ class ForecastContact:
                 weights, slopes = e.axis_weights(fx)
                 g_v_init = self.v_init.grad[g, p]
                 g_x = ti.Vector.zero(float, e.dim)
-                for i in range(3):  # the stencil as in the engine's adjoints (``node_weight``)
+                for i in range(3):  # first axis at run time, the others unrolled (``node_weight``)
                     for rest in ti.static(ti.grouped(ti.ndrange(*([3] * (e.dim - 1))))):
                         offset, weight, grad_w = e.node_weight(weights, slopes, i, rest)
                         node = base + offset

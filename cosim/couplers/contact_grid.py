@@ -114,7 +114,7 @@ class GridContact:
                 weights, slopes = e.axis_weights(fx)
                 share = self._liquid_share(p)
                 g_x = ti.Vector.zero(float, e.dim)
-                for i in range(3):  # the stencil as in the engine's adjoints (``node_weight``)
+                for i in range(3):  # first axis at run time, the others unrolled (``node_weight``)
                     for rest in ti.static(ti.grouped(ti.ndrange(*([3] * (e.dim - 1))))):
                         offset, _weight, grad_w = e.node_weight(weights, slopes, i, rest)
                         g_x += grad_w * self.liquid.grad[g, base + offset].dot(share)

@@ -32,36 +32,6 @@ from cosim.engines.mpm_kernels import MPMKernels
 class MPMAdjointKernels(MPMKernels):
     """The MPM kernels plus the adjoint of one substep (``_substep_grad``)."""
 
-    @ti.func
-    def axis_weights(self, fx):
-        """Per-axis quadratic B-spline weights of the three stencil nodes (the same as ``stencil``'s) and
-        their derivatives d w / d fx, as 3 x d matrices (row: the node's offset, column: the axis)."""
-        weights = ti.Matrix.rows([0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2])
-        slopes = ti.Matrix.rows([fx - 1.5, -2.0 * (fx - 1.0), fx - 0.5])
-        return weights, slopes
-
-    @ti.func
-    def node_weight(self, weights, slopes, i, rest):
-        """Stencil node offset (i, *rest), its weight and the weight's gradient [1/m] with respect to the
-        particle position, from ``axis_weights``: for the contact models' adjoints, which loop over the
-        first axis's ``i`` at run time and unroll the other axes (``rest``, compile-time)."""
-        offset = ti.Vector.zero(ti.i32, self.dim)
-        offset[0] = i
-        w_first, s_first = weights[i, 0], slopes[i, 0]
-        w_rest = 1.0
-        for k in ti.static(range(1, self.dim)):
-            offset[k] = rest[k - 1]
-            w_rest *= weights[rest[k - 1], k]
-        grad = ti.Vector.zero(float, self.dim)
-        grad[0] = self.inv_dx * s_first * w_rest
-        for k in ti.static(range(1, self.dim)):
-            factor = self.inv_dx * w_first * slopes[rest[k - 1], k]
-            for j in ti.static(range(1, self.dim)):
-                if ti.static(j != k):
-                    factor *= weights[rest[j - 1], j]
-            grad[k] = factor
-        return offset, w_first * w_rest, grad
-
     @ti.kernel
     def _p2g_adjoint(self, b: ti.i32, start: ti.i32, end: ti.i32, src: ti.i32, g: ti.i32, control_share: float):
         """Adjoint of ``_p2g``: a parallel gather of the grid momentum and mass adjoints into the
@@ -258,7 +228,7 @@ class MPMAdjointKernels(MPMKernels):
             self.grid_mom.grad[g, I] = ti.Vector.zero(float, self.dim)
             self.grid_m.grad[g, I] = 0.0
             self.grid_v.grad[g, I] = ti.Vector.zero(float, self.dim)
-            for fld in ti.static(self._hook_grid_adjoints()):  # a fill of all K grid copies cost more
+            for fld in ti.static(self._hook_fields("grid_adjoints")):  # a fill of all K grid copies cost more
                 fld.grad[g, I] = ti.zero(fld.grad[g, I])
 
     def _substep_grad(self, s: int, dt: float, control_share: float) -> None:

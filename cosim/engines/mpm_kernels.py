@@ -23,8 +23,6 @@ One substep, split into the phases a coupler drives (see DESIGN.md):
   F, apply the material's return mapping.
 """
 
-import itertools
-
 import numpy as np
 import taichi as ti
 
@@ -32,11 +30,12 @@ from cosim.engines.arch import current_choices
 from cosim.engines.data_oriented import data_oriented
 from cosim.engines.materials import MATERIALS
 from cosim.engines.mpm_inputs import MPMConfig, ParticleBody, particle_capacity
+from cosim.engines.mpm_stencil import StencilFunctions, stencil_rows
 from cosim.engines.mpm_watch import ParticleWatch
 
 
 @data_oriented
-class MPMKernels:
+class MPMKernels(StencilFunctions):
     """Fields, kernels and substep phases of the MPM; hooks and the contract live in ``MPMEngine``."""
 
     def __init__(self, config: MPMConfig, bodies: list[ParticleBody]):
@@ -77,7 +76,7 @@ class MPMKernels:
         # gradients (the adjoint reads them back instead of recomputing P2G),
         # one copy otherwise. g below is that copy's index.
         self.nodes = tuple(int(c) + 1 for c in config.cells)  # nodes at 0, dx, ..., cells * dx
-        self.rows = list(itertools.product(range(3), repeat=d - 1))  # the stencil's rows (``row_weight``)
+        self.rows = stencil_rows(d)  # the stencil's rows (``mpm_stencil``)
         self.n_grids = config.grad_substeps if grad else 1
         self.grid_mom = ti.Vector.field(d, float, shape=(self.n_grids, *self.nodes), needs_grad=grad)
         self.grid_m = ti.field(float, shape=(self.n_grids, *self.nodes), needs_grad=grad)
@@ -157,98 +156,6 @@ class MPMKernels:
 
     # ------------------------------------------------------------------ kernels
     @ti.func
-    def stencil(self, xp):
-        """Base node, fractional position (in cells) and per-axis quadratic B-spline weights of the
-        3^d nodes around position xp [m]; node ``base + offset`` has weight ``stencil_weight(w, offset)``."""
-        lim = ti.Vector(self.nodes) - 3
-        base = ti.max(ti.min(ti.cast(xp * self.inv_dx - 0.5, ti.i32), lim), 0)
-        fx = xp * self.inv_dx - ti.cast(base, float)
-        w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
-        return base, fx, w
-
-    @ti.func
-    def stencil_weight(self, w: ti.template(), offset: ti.template()):
-        """Product of the per-axis B-spline weights of stencil node ``offset`` (both compile-time)."""
-        weight = 1.0
-        for k in ti.static(range(self.dim)):
-            weight *= w[offset[k]][k]
-        return weight
-
-    @ti.func
-    def stencil_slopes(self, fx):
-        """Per-axis derivatives d w / d fx of ``stencil``'s weights (the same layout: ``slopes[o][k]``)."""
-        return [fx - 1.5, -2.0 * (fx - 1.0), fx - 0.5]
-
-    @ti.func
-    def plus_steps(self, value, steps, offset: ti.template(), first: ti.template()):
-        """value + sum_k offset[k] steps[:, first + k], for a compile-time ``offset``: zero offsets add
-        nothing, the others a column. An affine field at a stencil node, a(o) = value + steps (o - fx), is
-        written so: from its value at fx and its columns, without a matrix product per node (``_p2g`` and
-        the adjoints)."""
-        out = value
-        for k in ti.static(range(len(offset))):
-            if ti.static(offset[k] > 0):
-                out += offset[k] * steps[:, first + k]
-        return out
-
-    # The stencil as rows of three nodes along the last axis: ``self.rows`` holds each row's offsets on the
-    # first d - 1 axes. A node's weight is the row's weight times its own along the last axis, so a
-    # gather sums each row first and weights it once: about half the arithmetic of a node-by-node sum
-    # (G2P in 3D float32: 1.4x faster on one thread, 2.3x on two; the P2G adjoint ~2x; measured).
-    @ti.func
-    def row_node(self, row: ti.template(), c: ti.template()):
-        """The offset of node c (0, 1, 2 along the last axis) of row ``row``."""
-        return ti.Vector([row[k] for k in ti.static(range(self.dim - 1))] + [c])
-
-    @ti.func
-    def row_weight(self, w, row: ti.template()):
-        """Product of the per-axis weights of row ``row`` (its offsets on the first d - 1 axes)."""
-        weight = 1.0
-        for k in ti.static(range(self.dim - 1)):
-            weight *= w[row[k]][k]
-        return weight
-
-    @ti.func
-    def row_gradient(self, w, slopes, row: ti.template(), along, slope_sum):
-        """d/d fx of sum over row ``row`` of W_n h_n, given the row's sums along the last axis
-        ``along`` = sum_c w_c h_c and ``slope_sum`` = sum_c w'_c h_c (a d-vector, per cell: times 1/dx for
-        d/dx)."""
-        out = ti.Vector.zero(float, self.dim)
-        for j in ti.static(range(self.dim - 1)):
-            factor = along * slopes[row[j]][j]
-            for k in ti.static(range(self.dim - 1)):
-                if ti.static(k != j):
-                    factor *= w[row[k]][k]
-            out[j] = factor
-        out[self.dim - 1] = self.row_weight(w, row) * slope_sum
-        return out
-
-    @ti.func
-    def gather_moments(self, source, g, base, w):
-        """Sums over the 3^d stencil nodes n (offset o_n, weight W_n, velocity v_n = ``source.velocity``):
-        ``total`` = sum W_n v_n and ``first``, whose column k is sum W_n o_n[k] v_n. APIC's affine field is
-        then 4 / dx (first - total fx^T). Row by row (``row_weight``)."""
-        d = ti.static(self.dim)
-        total = ti.Vector.zero(float, d)
-        columns = [ti.Vector.zero(float, d) for _ in ti.static(range(d))]
-        for row in ti.static(self.rows):
-            along = ti.Vector.zero(float, d)  # sum over the row of w v
-            moment = ti.Vector.zero(float, d)  # sum over the row of c w v, c the node's last offset
-            for c in ti.static(range(3)):
-                wv = w[c][d - 1] * source.velocity(g, base + self.row_node(row, c))
-                along += wv
-                if ti.static(c > 0):
-                    moment += c * wv
-            w_row = self.row_weight(w, row)
-            total += w_row * along
-            columns[d - 1] += w_row * moment
-            for k in ti.static(range(d - 1)):
-                if ti.static(row[k] > 0):
-                    columns[k] += (row[k] * w_row) * along
-        first = ti.Matrix.cols(columns)
-        return total, first
-
-    @ti.func
     def mass_of(self, p):
         """Mass [kg] of particle p."""
         return self.p_mass[self.body_id[p]]
@@ -285,7 +192,7 @@ class MPMKernels:
             self.grid_mom[g, I] = ti.Vector.zero(float, self.dim)
             self.grid_m[g, I] = 0.0
             self.grid_v[g, I] = ti.Vector.zero(float, self.dim)
-            for fld in ti.static(self._hook_scratch()):
+            for fld in ti.static(self._hook_fields("scratch")):
                 fld[g, I] = ti.zero(fld[g, I])
 
     @ti.func
@@ -480,13 +387,10 @@ class MPMKernels:
             return 0.0
         return 1e-8 * float(min(b.particle_mass for b in self.bodies))
 
-    def _hook_scratch(self) -> list:
-        """Grid-shaped vector fields of the grid hooks that the grid clear zeroes each substep."""
-        return [fld for hook in self.grid_hooks for fld in getattr(hook, "scratch", ())]
-
-    def _hook_grid_adjoints(self) -> list:
-        """Grid-shaped fields of the grid hooks whose adjoints the substep's adjoint zeroes over the box."""
-        return [fld for hook in self.grid_hooks for fld in getattr(hook, "grid_adjoints", ())]
+    def _hook_fields(self, kind: str) -> list:
+        """The grid hooks' grid-shaped fields listed under ``kind``: "scratch" (zeroed by the grid clear each
+        substep) or "grid_adjoints" (their adjoints zeroed at the start of each substep's adjoint)."""
+        return [fld for hook in self.grid_hooks for fld in getattr(hook, kind, ())]
 
     def _fused_clear(self) -> bool:
         """Forward-only engines without a grid hook clear the grid inside grid_update."""
