@@ -24,6 +24,9 @@ MAX_NEWTON_ITERATIONS = 20  # Frobenius-scaled Newton needs at most ~9 up to con
 # Scaling helps only far from a rotation: it is dropped once an iteration moves R less than this
 # (squared Frobenius norm), as Higham recommends.
 UNSCALED_BELOW = 1e-4
+# Squared Frobenius norm of R^T R - I below which Newton-Schulz steps replace Newton's: every singular
+# value s then has |s^2 - 1| < 0.3, where Newton-Schulz converges (it needs s < sqrt(3)) about as fast.
+NEAR_ORTHOGONAL = 0.09
 
 
 def newton_stop() -> float:
@@ -78,12 +81,15 @@ def polar_rotation(F):
     """Rotation R of the polar decomposition F = R S (S symmetric).
 
     2D: closed form. 3D: Newton iterations R <- (g R + (g R)^-T) / 2 with
-    Frobenius scaling g = (|R^-T| / |R|)^(1/2) (Higham), until an update is
-    below ``newton_stop()``: round-off for stretches between 0.05 and 20
-    (tests/test_materials.py). A deformation near a rotation, the common case
-    in a substep, stops after 2-3 iterations (a fixed 5 before). Not for
-    Taichi's autodiff (the loop count depends on F); ``polar_rotation_vjp``
-    is its derivative.
+    Frobenius scaling g = (|R^-T| / |R|)^(1/2) (Higham) while R is far from
+    orthogonal; once |R^T R - I|^2 < ``NEAR_ORTHOGONAL``, Newton-Schulz steps
+    R <- R (3 I - R^T R) / 2, which converge as fast there (defect -> 3/4
+    defect^2) with no division or square root (the 3D stress spent ~2/3 of its
+    time in the polar decomposition). Both stop when an update is below
+    ``newton_stop()``: round-off for stretches between 0.05 and 20
+    (tests/test_materials.py); a deformation near a rotation, the common case,
+    takes 2 steps. Not for Taichi's autodiff (the loop count depends on F);
+    ``polar_rotation_vjp`` is its derivative.
     """
     R = F
     if ti.static(F.n == 2):
@@ -94,15 +100,23 @@ def polar_rotation(F):
         R = ti.Matrix([[c, -s], [s, c]])
     else:
         scaled = True
+        eye = ti.Matrix.identity(float, 3)
         for _ in range(MAX_NEWTON_ITERATIONS):
-            R_inv_t = inverse_transpose_3(R)
-            g = 1.0
-            if scaled:
-                g = ti.sqrt(ti.sqrt(R_inv_t.norm_sqr() / R.norm_sqr()))
-            R_next = 0.5 * (g * R + (1.0 / g) * R_inv_t)
-            update = (R_next - R).norm_sqr()
-            R = R_next
-            scaled = update > UNSCALED_BELOW
+            gram = R.transpose() @ R
+            defect = (gram - eye).norm_sqr()
+            update = 0.0
+            if defect < NEAR_ORTHOGONAL:
+                R = R @ (1.5 * eye - 0.5 * gram)
+                update = defect  # 4x the step's |R (I - R^T R) / 2|^2: it stops where Newton's would
+            else:
+                R_inv_t = inverse_transpose_3(R)
+                g = 1.0
+                if scaled:
+                    g = ti.sqrt(ti.sqrt(R_inv_t.norm_sqr() / R.norm_sqr()))
+                R_next = 0.5 * (g * R + (1.0 / g) * R_inv_t)
+                update = (R_next - R).norm_sqr()
+                R = R_next
+                scaled = update > UNSCALED_BELOW
             if update < ti.static(newton_stop()):
                 break
     return R
