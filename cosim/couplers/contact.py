@@ -301,7 +301,7 @@ class ForecastContact:
         """v_g = v_hat - alpha correction / m, evaluated where G2P gathers it (no extra pass)."""
         e = self.engine
         v = self.upstream.velocity(g, I)
-        m = e.grid_m[g, I]
+        m = e.node_mass(g, I)
         if m > 0:
             v -= (self.alpha / m) * self.correction[g, I]
         return v
@@ -311,10 +311,10 @@ class ForecastContact:
         """Adjoint of ``velocity(g, I)``: into the upstream velocity's, the node mass's and the correction's."""
         e = self.engine
         self.upstream.velocity_grad(g, I, g_v)
-        m = e.grid_m[g, I]
+        m = e.node_mass(g, I)
         if m > 0:
             correction = self.correction[g, I]
-            e.grid_m.grad[g, I] += (self.alpha / (m * m)) * correction.dot(g_v)
+            e.grid_mm.grad[g, I][e.dim] += (self.alpha / (m * m)) * correction.dot(g_v)
             self.correction.grad[g, I] -= (self.alpha / m) * g_v
 
     @ti.kernel

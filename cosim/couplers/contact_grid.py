@@ -63,8 +63,8 @@ class GridContact:
         self.liquid = None  # per node: (liquid volume fraction phi, liquid mass) [-, kg]
         self.solid = None  # per node next to liquid: the share of its cell inside the bodies [-]
         if self._reads_liquid():
-            self.liquid = ti.Vector.field(2, float, shape=engine.grid_m.shape, needs_grad=grad)
-            self.solid = ti.field(float, shape=engine.grid_m.shape, needs_grad=grad)
+            self.liquid = ti.Vector.field(2, float, shape=engine.grid_v.shape, needs_grad=grad)
+            self.solid = ti.field(float, shape=engine.grid_v.shape, needs_grad=grad)
             self.scratch = [self.liquid, self.solid]  # zeroed by the engine with the grid each substep
             # the solid share is read at a node's neighbours and written next to liquid (``_occupy``,
             # ``_liquid_reach``): one node beyond the nodes the particles reach
@@ -189,7 +189,7 @@ class GridContact:
         ti.loop_config(serialize=e.serial_grid_loops)
         for I in ti.grouped(ti.ndrange(*[(e.active_lo[g][k], e.active_hi[g][k]) for k in ti.static(range(e.dim))])):
             v = self.upstream.velocity(g, I)
-            m = e.grid_m[g, I]
+            m = e.node_mass(g, I)
             xi = ti.cast(I, float) * e.dx
             if m > 0:  # empty nodes need no boundary lookup
                 for src in ti.static(self.sources):

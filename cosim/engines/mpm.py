@@ -331,7 +331,7 @@ class MPMEngine(MPMAdjointKernels):
     # ------------------------------------------------------------ helpers
     def gradient_buffers_allocated(self) -> bool:
         """True when any field carries an allocated adjoint (only with requires_grad)."""
-        fields = [self.x, self.v, self.C, self.F, self.E, self.nu, self.affine, self.grid_mom, self.grid_m, self.grid_v]
+        fields = [self.x, self.v, self.C, self.F, self.E, self.nu, self.affine, self.grid_mm, self.grid_v]
         if self.control is not None:
             fields.append(self.control)
         return any(f.grad is not None and f.grad.snode.ptr is not None for f in fields)

@@ -56,8 +56,9 @@ class MPMAdjointKernels(MPMKernels):
                 along_h, slope_h = 0.0, 0.0
                 for c in ti.static(range(3)):
                     node = base + self.row_node(row, c)
-                    g_node = self.grid_mom.grad[g, node]
-                    h = g_node.dot(self.plus_steps(row_base, steps, [c], d - 1)) + m_p * self.grid_m.grad[g, node]
+                    g_mm = self.grid_mm.grad[g, node]
+                    g_node = ti.Vector([g_mm[k] for k in ti.static(range(d))])
+                    h = g_node.dot(self.plus_steps(row_base, steps, [c], d - 1)) + m_p * g_mm[d]
                     weighted = w[c][d - 1] * g_node
                     along_g += weighted
                     if ti.static(c > 0):
@@ -225,8 +226,7 @@ class MPMAdjointKernels(MPMKernels):
         for I in ti.grouped(
             ti.ndrange(*[(self.active_lo[g][k], self.active_hi[g][k]) for k in ti.static(range(self.dim))])
         ):
-            self.grid_mom.grad[g, I] = ti.Vector.zero(float, self.dim)
-            self.grid_m.grad[g, I] = 0.0
+            self.grid_mm.grad[g, I] = ti.Vector.zero(float, self.dim + 1)
             self.grid_v.grad[g, I] = ti.Vector.zero(float, self.dim)
             for fld in ti.static(self._hook_fields("grid_adjoints")):  # a fill of all K grid copies cost more
                 fld.grad[g, I] = ti.zero(fld.grad[g, I])

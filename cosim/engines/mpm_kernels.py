@@ -78,8 +78,9 @@ class MPMKernels(StencilFunctions):
         self.nodes = tuple(int(c) + 1 for c in config.cells)  # nodes at 0, dx, ..., cells * dx
         self.rows = stencil_rows(d)  # the stencil's rows (``mpm_stencil``)
         self.n_grids = config.grad_substeps if grad else 1
-        self.grid_mom = ti.Vector.field(d, float, shape=(self.n_grids, *self.nodes), needs_grad=grad)
-        self.grid_m = ti.field(float, shape=(self.n_grids, *self.nodes), needs_grad=grad)
+        # per node: momentum [kg m/s] in components 0..d-1, mass [kg] in component d, side by side
+        # so that P2G adds both with one vector add to one place (``node_momentum``, ``node_mass``)
+        self.grid_mm = ti.Vector.field(d + 1, float, shape=(self.n_grids, *self.nodes), needs_grad=grad)
         self.grid_v = ti.Vector.field(d, float, shape=(self.n_grids, *self.nodes), needs_grad=grad)
         self.gravity = ti.Vector([float(g) for g in config.gravity])
         self.affine = ti.Matrix.field(d, d, float, shape=(self.n_grids, n), needs_grad=grad)
@@ -189,11 +190,21 @@ class MPMKernels(StencilFunctions):
         for I in ti.grouped(
             ti.ndrange(*[(self.active_lo[g][k], self.active_hi[g][k]) for k in ti.static(range(self.dim))])
         ):
-            self.grid_mom[g, I] = ti.Vector.zero(float, self.dim)
-            self.grid_m[g, I] = 0.0
+            self.grid_mm[g, I] = ti.Vector.zero(float, self.dim + 1)
             self.grid_v[g, I] = ti.Vector.zero(float, self.dim)
             for fld in ti.static(self._hook_fields("scratch")):
                 fld[g, I] = ti.zero(fld[g, I])
+
+    @ti.func
+    def node_mass(self, g, I):
+        """Mass [kg] P2G scattered to node I of grid copy g."""
+        return self.grid_mm[g, I][self.dim]
+
+    @ti.func
+    def node_momentum(self, g, I):
+        """Momentum [kg m/s] P2G scattered to node I of grid copy g."""
+        mm = self.grid_mm[g, I]
+        return ti.Vector([mm[k] for k in ti.static(range(self.dim))])
 
     @ti.func
     def velocity(self, g, I):
@@ -257,9 +268,10 @@ class MPMKernels(StencilFunctions):
             steps = self.affine[g, p] * self.dx
             at_base = self.particle_momentum(src, g, p, m_p, control_share) - steps @ fx
             for offset in ti.static(ti.grouped(ti.ndrange(*([3] * self.dim)))):
-                weight = self.stencil_weight(w, offset)
-                self.grid_mom[g, base + offset] += weight * self.plus_steps(at_base, steps, offset, 0)
-                self.grid_m[g, base + offset] += weight * m_p
+                mom = self.plus_steps(at_base, steps, offset, 0)
+                self.grid_mm[g, base + offset] += self.stencil_weight(w, offset) * ti.Vector(
+                    [mom[k] for k in ti.static(range(self.dim))] + [m_p]
+                )
         if ti.static(bounded):  # noqa: SIM102 (compile-time tests)
             if ti.static(margin > 0):  # the widened box kept inside the grid
                 self.active_lo[g] = ti.max(self.active_lo[g], 0)
@@ -273,10 +285,10 @@ class MPMKernels(StencilFunctions):
         for I in ti.grouped(
             ti.ndrange(*[(self.active_lo[g][k], self.active_hi[g][k]) for k in ti.static(range(self.dim))])
         ):
-            m = self.grid_m[g, I]
+            m = self.node_mass(g, I)
             vel = ti.Vector.zero(float, self.dim)
             if m > mass_floor:
-                vel = self.grid_mom[g, I] / m + dt * self.gravity
+                vel = self.node_momentum(g, I) / m + dt * self.gravity
                 if ti.static(self.cfg.wall != "none"):
                     for k in ti.static(range(self.dim)):
                         low = I[k] < self.cfg.wall_cells and vel[k] < 0
@@ -291,8 +303,7 @@ class MPMKernels(StencilFunctions):
                 # forward-only: leave the grid cleared for the next P2G (saves a pass);
                 # with gradients the backward pass reads these values back, and
                 # a contact hook reads the masses after this kernel
-                self.grid_mom[g, I] = ti.Vector.zero(float, self.dim)
-                self.grid_m[g, I] = 0.0
+                self.grid_mm[g, I] = ti.Vector.zero(float, self.dim + 1)
 
     @ti.kernel
     def _g2p_advect(
