@@ -176,7 +176,9 @@ class MPMAdjointKernels(MPMKernels):
             self.F.grad[src, p] = self.F.grad[src, p] + F_bar
             self.C.grad[src, p] = self.C.grad[src, p] + C_bar + m_p * affine_bar
             if ti.static(material_grads):
-                self._lame_grad(b, mu_bar, lam_bar)
+                self.lame_bar[None] += ti.Vector([mu_bar, lam_bar])
+        if ti.static(material_grads):
+            self._lame_grad(b)
 
     @ti.kernel
     def _advect_adjoint(
@@ -206,16 +208,26 @@ class MPMAdjointKernels(MPMKernels):
             self.F.grad[src, p] = self.F.grad[src, p] + step.transpose() @ trial_bar
             if ti.static(mat.project_uses_lame):  # noqa: SIM102 (compile-time; else a zero added to E and nu by every particle)
                 if ti.static(material_grads):
-                    self._lame_grad(b, mu_bar, lam_bar)
+                    self.lame_bar[None] += ti.Vector([mu_bar, lam_bar])
+        if ti.static(mat.project_uses_lame):  # noqa: SIM102 (compile-time tests)
+            if ti.static(material_grads):
+                self._lame_grad(b)
 
     @ti.func
-    def _lame_grad(self, b, mu_bar, lam_bar):
-        """Add dL/dE and dL/dnu of body b from dL/dmu and dL/dlam: mu = E / (2 (1 + nu)), lam = E nu / q,
-        q = (1 + nu)(1 - 2 nu)."""
-        E, nu = self.E[b], self.nu[b]
-        q = (1.0 + nu) * (1.0 - 2.0 * nu)
-        self.E.grad[b] += mu_bar / (2.0 * (1.0 + nu)) + lam_bar * nu / q
-        self.nu.grad[b] += -mu_bar * E / (2.0 * (1.0 + nu) ** 2) + lam_bar * E * (1.0 + 2.0 * nu * nu) / (q * q)
+    def _lame_grad(self, b):
+        """Add dL/dE and dL/dnu of body b from the dL/dmu and dL/dlam its particles summed into ``lame_bar``
+        (mu = E / (2 (1 + nu)), lam = E nu / q, q = (1 + nu)(1 - 2 nu)), and reset the sum. Called after
+        the particle loop: as its own one-iteration loop it runs once the sums are complete. Summing into
+        a 0-D field lets Taichi keep one sum per thread (its thread-local reduction); adds to E.grad[b]
+        (b known at run time) were atomic adds to one address from every particle, which cost 0.9-1.5 ms
+        of a 2.3-3.0 ms 3D stress adjoint (30k particles, 2 threads)."""
+        for _ in range(1):
+            mu_bar, lam_bar = self.lame_bar[None]
+            E, nu = self.E[b], self.nu[b]
+            q = (1.0 + nu) * (1.0 - 2.0 * nu)
+            self.E.grad[b] += mu_bar / (2.0 * (1.0 + nu)) + lam_bar * nu / q
+            self.nu.grad[b] += -mu_bar * E / (2.0 * (1.0 + nu) ** 2) + lam_bar * E * (1.0 + 2.0 * nu * nu) / (q * q)
+            self.lame_bar[None] = ti.Vector.zero(float, 2)
 
     @ti.kernel
     def _zero_grid_grad(self, g: ti.i32):

@@ -89,6 +89,8 @@ class MPMKernels(StencilFunctions):
         self.active_hi = ti.Vector.field(d, ti.i32, shape=self.n_grids)
         # the adjoint of the grid velocities one G2P read (gradients only; see ``mpm_adjoint``)
         self.gathered_grad = ti.Vector.field(d, float, shape=self.nodes) if grad else None
+        # one adjoint kernel's sum of dL/dmu, dL/dlam over a body's particles (``mpm_adjoint._lame_grad``)
+        self.lame_bar = ti.Vector.field(2, float, shape=()) if grad else None
         self.control = None
         if config.has_controls:
             self.control = ti.Vector.field(d, float, shape=n, needs_grad=grad)
