@@ -8,6 +8,9 @@ Work done on the material, summed every macro step:
 - the control impulses I on particles of mass m and velocity v: sum I . v + |I|^2 / 2m.
 Gravity is inside the energy (its potential), so a falling body does no "work".
 
+The energies and volumes are the engine's (``MPMEngine.energies``, summed on the device), of its current
+state: ``begin_step`` is called before a step, ``end_step`` after it.
+
 Every ``every`` macro steps of a rollout that runs from step 0, E(t) > E(0) + W(t) + ``share`` * scale
 stops the run with a ``SimulationError`` naming the body whose energy grew most; scale = E(0) above
 its floor (all mass at the domain's lowest point) plus sum |W|, so the check tolerates round-off and
@@ -22,7 +25,6 @@ import itertools
 
 import numpy as np
 
-from cosim.diagnostics import body_energies
 from cosim.errors import SimulationError
 
 
@@ -39,24 +41,23 @@ class Conservation:
         # the lowest potential any particle can have: -g . x at the domain corner furthest along g
         self.floor = -float(engine.mass.sum()) * float((corners @ self.gravity).max())
         self._next = None  # the step expected next; None: inactive until a rollout starts at step 0
-        self.liquids = [(lo, hi, b.particle_volume) for b, (lo, hi) in zip(engine.bodies, engine.ranges)]
-        self.liquids = [s for s, b in zip(self.liquids, engine.bodies) if b.material == "liquid"]
+        self.liquids = [b.name for b in engine.bodies if b.material == "liquid"]
         self.volume_ratio = (1.0, 1.0)  # (min, max) of the liquids' volume over their initial volume
 
-    def start(self, state: dict[str, np.ndarray]) -> None:
-        """A rollout begins from ``state`` (step 0)."""
-        self.initial = body_energies(self.engine, state, self.gravity)
+    def start(self) -> None:
+        """A rollout begins from the engine's current state (step 0)."""
+        self.initial = self.engine.energies()
         self.E0 = sum(e["total"] for e in self.initial.values())
         self.work = self.work_abs = 0.0
         self.excess = None  # the largest (E - E0 - W) / scale seen (negative: energy dissipated), None before a check
-        self.volume0 = self._liquid_volume(state)
+        self.volume0 = self._liquid_volume(self.initial)
         self.volume_ratio = (1.0, 1.0)
         self._next = 0
 
-    def begin_step(self, step_index: int, state: dict[str, np.ndarray]) -> bool:
-        """Called before each step with the state it starts from; whether this step is being accounted."""
+    def begin_step(self, step_index: int) -> bool:
+        """Called before each step, the engine in the state it starts from; whether this step is being accounted."""
         if step_index == 0:
-            self.start(state)
+            self.start()
         elif step_index != self._next:
             self._next = None  # a replay from a checkpoint: already checked
         return self._next is not None
@@ -66,15 +67,15 @@ class Conservation:
         self.work += joules
         self.work_abs += abs(joules)
 
-    def end_step(self, step_index: int, state: dict[str, np.ndarray]) -> None:
-        """After step ``step_index`` (0-based) with the state it ended in: the check every ``every`` steps."""
+    def end_step(self, step_index: int) -> None:
+        """After step ``step_index`` (0-based), the engine in the state it ended in: the check every ``every`` steps."""
         if self._next is None:
             return
         self._next = step_index + 1
         if self._next % self.every:
             return
-        self._track_volume(state)
-        now = body_energies(self.engine, state, self.gravity)
+        now = self.engine.energies()
+        self._track_volume(now)
         E = sum(e["total"] for e in now.values())
         scale = max(self.E0 - self.floor, 0.0) + self.work_abs
         if scale <= 0.0:
@@ -91,16 +92,13 @@ class Conservation:
                 "the simulation is unstable; lower time.cfl or raise time.substeps, or soften the contact"
             )
 
-    def _liquid_volume(self, state: dict[str, np.ndarray]) -> float:
-        """[m^3, 2D: m^2] sum V0 det F over the liquids' particles."""
-        if not self.liquids:
-            return 0.0
-        J = np.linalg.det(state["F"])
-        return float(sum(v * J[lo:hi].sum() for lo, hi, v in self.liquids))
+    def _liquid_volume(self, energies: dict[str, dict[str, float]]) -> float:
+        """[m^3, 2D: m^2] sum V0 det F over the liquids' particles, from ``MPMEngine.energies``."""
+        return sum(energies[name]["volume"] for name in self.liquids)
 
-    def _track_volume(self, state: dict[str, np.ndarray]) -> None:
+    def _track_volume(self, energies: dict[str, dict[str, float]]) -> None:
         if self.liquids:
-            ratio = self._liquid_volume(state) / self.volume0
+            ratio = self._liquid_volume(energies) / self.volume0
             self.volume_ratio = (min(self.volume_ratio[0], ratio), max(self.volume_ratio[1], ratio))
 
 

@@ -176,6 +176,7 @@ class CoupledSystem:
         (default: the scene's sequences)."""
         st = self.stepping
         t0 = self.step_index * self.frame_dt
+        tracked = self.conservation.begin_step(self.step_index)  # not a replay (reads the state it starts from)
         fixed = st.fixed or (st.grad_substeps if st.requires_grad else 0)
         speed = self.mpm.max_speed()
         if fixed:
@@ -203,7 +204,7 @@ class CoupledSystem:
                 outputs, mpm_record = self.mpm.step(
                     {"dt": dt, "substeps": K, "impulse": impulse, "boundaries": boundaries}
                 )
-            after, health = outputs["state"], outputs["health"]
+            health = outputs["health"]
             self._check_finite(health, K)
             cfl, body = self._cfl(health, dt)
             if cfl <= st.cfl:
@@ -222,12 +223,11 @@ class CoupledSystem:
             self.mpm.set_state(mpm_record.state)
             K *= 2
         self._check_domain(health)
-        tracked = self.conservation.begin_step(self.step_index, mpm_record.state)  # not a replay
         if tracked and self.step_index == 0 and self.tunnels is not None:
             self.tunnels.reset()
             self.passed_through = {}
         if tracked:
-            self._account_energy(mpm_record, boundaries, outputs["reactions"], after)
+            self._account_energy(mpm_record, boundaries, outputs["reactions"])
         forces: dict[str, Any] = {}
         with self._timed("couplers"):
             for c in self.couplers:
@@ -344,15 +344,15 @@ class CoupledSystem:
     def _timed(self, key: str):
         return _Stopwatch(self.timings, key)
 
-    def _account_energy(self, record, boundaries: dict, reactions: dict, after: dict[str, np.ndarray]) -> None:
-        """The work the boundaries and controls did on the material this step, and the energy check
-        (``cosim.conservation``)."""
+    def _account_energy(self, record, boundaries: dict, reactions: dict) -> None:
+        """The work the boundaries and controls did on the material this step, and the energy check on
+        the state it ended in, the engine's current one (``cosim.conservation``)."""
         cons = self.conservation
         for name, states in boundaries.items():
             cons.add_work(self.mpm.boundaries[name].work(states, reactions[name]))
         if record.impulse is not None:
             cons.add_work(control_work(record.impulse, record.state["v"], self.mpm.mass))
-        cons.end_step(self.step_index, after)
+        cons.end_step(self.step_index)
 
     def _check_tunnelling(self, poses0: list) -> None:
         """Count the particles that went through a rigid body this step, the bodies at ``poses0`` when it

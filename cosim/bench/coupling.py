@@ -18,9 +18,9 @@ block (E = 1e4 Pa, dt = 1e-4 s, fixed substeps, float32, 2D 128^2 and 3D 64^3; i
 a process of its own each, Taichi's precision being per process): the same macro
 steps through ``CoupledSystem.step`` (as `cosim run` steps: the NaN / CFL / domain
 checks, the conservation check every 10 steps, the contract step) and through
-``MPMEngine.advance`` alone, in alternating blocks of 10 continuing one motion;
-api / bare - 1 is the overhead, "host ms" the part of a step outside the MPM's
-contract step.
+``MPMEngine.advance`` alone, in alternating blocks of 10 continuing one motion
+(the order flipped each repeat); the overhead is the median over the pairs of
+api / bare - 1, "host ms" the part of a step outside the MPM's contract step.
 
 Each measurement is the median of ``repeat`` runs.
 """
@@ -153,7 +153,8 @@ def measure_overhead(dim: int, cells: int, side: int, substeps: int, steps: int,
     sim.rollout()  # compiles
     dt = sim.frame_dt / substeps
     api, bare, host = [], [], []
-    for _ in range(repeat):
+
+    def api_block():
         sim.timings = {}
         t = time.perf_counter()
         for _ in range(steps):
@@ -162,11 +163,17 @@ def measure_overhead(dim: int, cells: int, side: int, substeps: int, steps: int,
         api.append((time.perf_counter() - t) / steps)
         host.append(api[-1] - sim.timings["mpm"] / steps)
         sim.timings = None
+
+    def bare_block():
         t = time.perf_counter()
         for _ in range(steps):
             sim.mpm.advance(dt, substeps)
         ti.sync()
         bare.append((time.perf_counter() - t) / steps)
+
+    for i in range(repeat):  # the order flips each repeat, so a drift of the machine's speed cancels
+        for block in (api_block, bare_block) if i % 2 == 0 else (bare_block, api_block):
+            block()
     a, b = float(np.median(api)), float(np.median(bare))
     return {
         "dim": dim,
@@ -176,7 +183,8 @@ def measure_overhead(dim: int, cells: int, side: int, substeps: int, steps: int,
         "api_ms": 1e3 * a,
         "bare_ms": 1e3 * b,
         "host_ms": 1e3 * float(np.median(host)),
-        "overhead": a / b - 1.0,
+        # the median of each pair's ratio: a pair runs back to back, so it shares the machine's state
+        "overhead": float(np.median(np.array(api) / np.array(bare))) - 1.0,
     }
 
 

@@ -20,6 +20,8 @@ import numpy as np
 
 from cosim.engines.data_oriented import data_oriented
 from cosim.engines.mpm_adjoint import MPMAdjointKernels
+from cosim.engines.mpm_energy import TERMS as ENERGY_TERMS
+from cosim.engines.mpm_energy import EnergyMeter
 from cosim.engines.mpm_inputs import STATE_KEYS, MPMConfig, ParticleBody
 from cosim.engines.mpm_watch import BodyHealth
 from cosim.engines.slot_state import SlotState
@@ -72,6 +74,7 @@ class MPMEngine(MPMAdjointKernels):
         self.state_version = 0  # changes whenever the current state does (``_forget``)
         super().__init__(config, bodies)
         self._material = self.material()  # E, nu per body now: the derived quantities' one source
+        self._energy_meter = EnergyMeter(self)
 
     @property
     def slot(self) -> int:
@@ -141,6 +144,17 @@ class MPMEngine(MPMAdjointKernels):
         if self._known_health is None:
             self._known_health = self.watch.survey(self._slot)
         return self._known_health
+
+    def energies(self) -> dict[str, dict[str, float]]:
+        """Per body name: the current particles' kinetic, gravitational, strain and total energy [J] and
+        volume sum V0 det F [m^3, 2D: m^2] (``cosim.engines.mpm_energy``: summed on the device)."""
+        sums = self._energy_meter.body_sums(self._slot)
+        out = {}
+        for body, row in zip(self.bodies, sums):
+            terms = {k: float(v) for k, v in zip(ENERGY_TERMS, row)}
+            terms["total"] = terms["kinetic"] + terms["gravity"] + terms["strain"]
+            out[body.name] = terms
+        return out
 
     def set_state(self, state: dict[str, np.ndarray]) -> None:
         """Restore a state from ``state()`` (or a step's); the next step starts from it bit for bit."""

@@ -1,0 +1,74 @@
+"""Energies of the MPM particles, summed on the device: what the conservation check and saved frames read.
+
+Per body [J]: kinetic sum 1/2 m |v|^2 (APIC's affine part not counted), gravitational -sum m g . x (zero at
+the domain origin), and strain: fixed corotated sum V0 (mu |F - R|^2 + lam/2 (J - 1)^2) for elastic and
+plastic bodies (R the polar rotation of F, so |F - R|^2 = sum (sigma_i - 1)^2 over F's singular values),
+sum V0 K/2 (J - 1)^2 for liquids (K = lam + 2 mu / d); and the volume sum V0 det F [m^3, 2D: m^2]. The
+Lame parameters are the bodies' current ones (``set_parameters``).
+
+One parallel pass over chunks of particles, each summed serially in float64 (no atomics), then a small
+table to the host: in 3D the host's SVDs of 30k deformation gradients took ~24 ms a check.
+"""
+
+import numpy as np
+import taichi as ti
+
+from cosim.engines.data_oriented import data_oriented
+from cosim.engines.materials import polar_rotation
+from cosim.engines.mpm_watch import CHUNK
+
+TERMS = ("kinetic", "gravity", "strain", "volume")
+
+
+@data_oriented
+class EnergyMeter:
+    """``body_sums(slot)`` of one MPM engine (``MPMKernels``: its fields are read)."""
+
+    def __init__(self, engine):
+        self.engine = engine
+        chunks = [(p, min(p + CHUNK, hi), b) for b, (lo, hi) in enumerate(engine.ranges) for p in range(lo, hi, CHUNK)]
+        self.chunks = np.array(chunks, dtype=np.int32).reshape(-1, 3)  # start, end, body
+
+    @ti.func
+    def strain_density(self, b, F):
+        """Strain energy per reference volume [J/m^3] of body b at deformation gradient F."""
+        e = self.engine
+        mu, lam = e._lame(b)
+        J = F.determinant()
+        psi = 0.0
+        if e.p_liquid[b]:
+            psi = 0.5 * (lam + 2.0 * mu / e.dim) * (J - 1.0) ** 2
+        else:
+            psi = mu * (F - polar_rotation(F)).norm_sqr() + 0.5 * lam * (J - 1.0) ** 2
+        return psi
+
+    @ti.kernel
+    def _chunk_sums(self, slot: ti.i32, chunks: ti.types.ndarray(), out: ti.types.ndarray()):
+        """Per chunk c (parallel; serial within a chunk), into ``out[c]``: the ``TERMS`` of its particles."""
+        e = self.engine
+        ti.loop_config(serialize=e.serial_particle_loops)
+        for c in range(chunks.shape[0]):
+            b = chunks[c, 2]
+            m, vol = e.p_mass[b], e.p_vol[b]
+            sums = ti.Vector.zero(ti.f64, 4)
+            for p in range(chunks[c, 0], chunks[c, 1]):
+                F = e.F[slot, p]
+                terms = ti.Vector(
+                    [
+                        0.5 * m * e.v[slot, p].norm_sqr(),
+                        -m * e.gravity.dot(e.x[slot, p]),
+                        vol * self.strain_density(b, F),
+                        vol * F.determinant(),
+                    ]
+                )
+                sums += ti.cast(terms, ti.f64)
+            for k in ti.static(range(4)):
+                out[c, k] = sums[k]
+
+    def body_sums(self, slot: int) -> np.ndarray:
+        """(bodies, 4) float64: per body the ``TERMS`` of the particles in ``slot``."""
+        out = np.zeros((len(self.chunks), len(TERMS)))
+        self._chunk_sums(slot, self.chunks, out)
+        sums = np.zeros((len(self.engine.bodies), len(TERMS)))
+        np.add.at(sums, self.chunks[:, 2], out)
+        return sums
