@@ -385,7 +385,7 @@ class CoupledSystem:
             key = next((k for k in ("v", "x", "F", "C") if h.non_finite[k]), None)
             if key is None:
                 continue
-            first = K - 1 if h.first_bad is None else h.first_bad  # None: in the last advection (mpm_watch)
+            first = K - 1 if h.first_bad is None else h.first_bad  # None: no G2P saw it (mpm_watch); the last substep
             where = "in the state the step started from" if first < 0 else f"first in substep {first} (0-based) of {K}"
             raise SimulationError(
                 f"step {self.step_index}: body '{body}': non-finite {names[key]} ({key}) in "

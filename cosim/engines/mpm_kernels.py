@@ -335,10 +335,12 @@ class MPMKernels(StencilFunctions):
             self.C[dst, p] = new_C
             F = self.F[src, p]
             mu, lam = self._lame(b)
-            self.x[dst, p] = xp + dt * new_v
+            new_x = xp + dt * new_v
+            self.x[dst, p] = new_x
             F_trial = (ti.Matrix.identity(float, self.dim) + dt * new_C) @ F
-            self.F[dst, p] = mat.project(F_trial, mu, lam, self.yield_stress[b])
-            self.watch.flag(p, s, xp, F, new_v, new_C)  # last: a branch earlier slowed the loop (measured)
+            new_F = mat.project(F_trial, mu, lam, self.yield_stress[b])
+            self.F[dst, p] = new_F
+            self.watch.flag(p, s, xp, F, new_x, new_F)  # last: a branch earlier slowed the loop (measured)
 
     @ti.kernel
     def _copy_slot(self, src: ti.i32, dst: ti.i32):
