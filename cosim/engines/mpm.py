@@ -301,7 +301,9 @@ class MPMEngine(MPMAdjointKernels):
             source.write(boundaries[name])
 
     def _zero_grad(self) -> None:
-        fields = [self.x, self.v, self.C, self.F, self.affine, self.E, self.nu]  # grids: per substep (_zero_grid_grad)
+        # the particle adjoints of each slot are started by its substep's ``_advect_adjoint``, the grids' by
+        # ``_zero_grid_grad``: only what every substep adds to is zeroed here
+        fields = [self.E, self.nu]
         for fld in fields + ([self.control] if self.control is not None else []):
             fld.grad.fill(0)
         for hook in self.grid_hooks + self.particle_hooks:
