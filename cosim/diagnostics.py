@@ -1,4 +1,5 @@
-"""Energies of the MPM state, evaluated on the host at saved frames [J]."""
+"""Energies of an MPM state from its host arrays [J]: for states read back or saved, and the reference
+the device sums (``cosim.engines.mpm_energy``, what runs read) are tested against."""
 
 from __future__ import annotations
 
@@ -56,7 +57,12 @@ def body_energies(engine, state: dict[str, np.ndarray], gravity) -> dict[str, di
     return out
 
 
+def summed(per_body: dict[str, dict[str, float]]) -> dict[str, float]:
+    """Kinetic, gravitational, strain and total energy [J] over all bodies, from per-body energies
+    (``body_energies`` or ``MPMEngine.energies``)."""
+    return {k: sum(e[k] for e in per_body.values()) for k in ("kinetic", "gravity", "strain", "total")}
+
+
 def energies(engine, state: dict[str, np.ndarray], gravity) -> dict[str, float]:
     """Kinetic, gravitational and strain energy of the whole MPM state [J]."""
-    per_body = body_energies(engine, state, gravity).values()
-    return {k: sum(e[k] for e in per_body) for k in ("kinetic", "gravity", "strain", "total")}
+    return summed(body_energies(engine, state, gravity))

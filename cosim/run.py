@@ -68,11 +68,12 @@ class Recorder:
             self._stepped = step_index
 
     def __call__(self, step_index: int) -> None:
+        from cosim.diagnostics import summed
+
         state = self.sim.mpm.state()
         self.frames.append([state["x"][sl].copy() for sl in self.sim.slices.values()])
         self.times.append(step_index * self.sim.frame_dt)
-        per_body = self.sim.mpm.energies().values()  # of the current state, summed on the device
-        self.energy.append({k: sum(e[k] for e in per_body) for k in ("kinetic", "gravity", "strain", "total")})
+        self.energy.append(summed(self.sim.mpm.energies()))  # of the current state, summed on the device
         if self.sim.rigid is not None:
             self.rigid_poses.append(self.sim.rigid.poses())
             if step_index:

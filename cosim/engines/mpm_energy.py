@@ -15,7 +15,7 @@ import taichi as ti
 
 from cosim.engines.data_oriented import data_oriented
 from cosim.engines.materials import polar_rotation
-from cosim.engines.mpm_watch import CHUNK
+from cosim.engines.mpm_watch import body_chunks
 
 TERMS = ("kinetic", "gravity", "strain", "volume")
 
@@ -26,8 +26,7 @@ class EnergyMeter:
 
     def __init__(self, engine):
         self.engine = engine
-        chunks = [(p, min(p + CHUNK, hi), b) for b, (lo, hi) in enumerate(engine.ranges) for p in range(lo, hi, CHUNK)]
-        self.chunks = np.array(chunks, dtype=np.int32).reshape(-1, 3)  # start, end, body
+        self.chunks = body_chunks(engine.ranges)
 
     @ti.func
     def strain_density(self, b, F):

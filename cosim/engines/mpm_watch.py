@@ -26,6 +26,13 @@ NONE = 2**30  # the first bad substep of a body with none
 CHUNK = 1024  # particles per survey chunk (chunks run in parallel, each serially)
 
 
+def body_chunks(ranges: list[tuple[int, int]]) -> np.ndarray:
+    """(chunks, 3) int32 rows (start, end, body): each body's particle range [lo, hi) cut into ``CHUNK``s,
+    which a per-chunk reduction sums serially and in parallel with the others (no atomics)."""
+    chunks = [(p, min(p + CHUNK, hi), b) for b, (lo, hi) in enumerate(ranges) for p in range(lo, hi, CHUNK)]
+    return np.array(chunks, dtype=np.int32).reshape(-1, 3)
+
+
 @dataclass
 class BodyHealth:
     """One body's particles at the end of a step."""
@@ -62,8 +69,7 @@ class ParticleWatch:
         self.first.fill(NONE)
         self.low = engine.dx  # [m] inside the grid: at least a cell from each face
         self.high = ti.Vector([c * engine.dx - engine.dx for c in engine.cfg.cells])
-        chunks = [(p, min(p + CHUNK, hi), b) for b, (lo, hi) in enumerate(engine.ranges) for p in range(lo, hi, CHUNK)]
-        self.chunks = np.array(chunks, dtype=np.int32).reshape(-1, 3)  # start, end, body
+        self.chunks = body_chunks(engine.ranges)
 
     @ti.func
     def flag(self, p, s, x, F, new_x, new_F):

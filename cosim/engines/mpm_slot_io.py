@@ -1,0 +1,66 @@
+"""Copies between the MPM's particle slots and the host: ``SlotIO``, a base of ``MPMKernels``.
+
+Its kernels read the engine's particle fields (``x``, ``v``, ``C``, ``F`` and their adjoints, or any
+per-particle field given), ``count``, ``n_particles``, ``dim``, ``real`` and ``serial_particle_loops``.
+They loop over the particle count, not the fields' capacity (``mpm_inputs.particle_capacity``).
+"""
+
+import numpy as np
+import taichi as ti
+
+from cosim.engines.data_oriented import data_oriented
+
+
+@data_oriented
+class SlotIO:
+    """Slot copies on the device, and reads / writes of one slot of a particle field from / to the host."""
+
+    @ti.kernel
+    def _copy_slot(self, src: ti.i32, dst: ti.i32):
+        ti.loop_config(serialize=self.serial_particle_loops)
+        for p in range(self.count[None]):
+            self.x[dst, p] = self.x[src, p]
+            self.v[dst, p] = self.v[src, p]
+            self.C[dst, p] = self.C[src, p]
+            self.F[dst, p] = self.F[src, p]
+
+    @ti.kernel
+    def _read_slot(self, fld: ti.template(), slot: ti.i32, out: ti.types.ndarray()):
+        """Copy one slot of a particle field (or its adjoint) into out (n, d) or (n, d, d)."""
+        ti.loop_config(serialize=self.serial_particle_loops)
+        for p in range(self.count[None]):
+            if ti.static(fld.m == 1):
+                for i in ti.static(range(fld.n)):
+                    out[p, i] = fld[slot, p][i]
+            else:
+                for i, j in ti.static(ti.ndrange(fld.n, fld.m)):
+                    out[p, i, j] = fld[slot, p][i, j]
+
+    @ti.kernel
+    def _write_slot(self, fld: ti.template(), slot: ti.i32, src: ti.types.ndarray()):
+        ti.loop_config(serialize=self.serial_particle_loops)
+        for p in range(self.count[None]):
+            if ti.static(fld.m == 1):
+                for i in ti.static(range(fld.n)):
+                    fld[slot, p][i] = src[p, i]
+            else:
+                for i, j in ti.static(ti.ndrange(fld.n, fld.m)):
+                    fld[slot, p][i, j] = src[p, i, j]
+
+    @ti.kernel
+    def _write_vectors(self, fld: ti.template(), src: ti.types.ndarray()):
+        """Copy src (n, d) into a per-particle vector field (the controls): Taichi's ``from_numpy`` is a
+        parallel loop over the whole capacity."""
+        ti.loop_config(serialize=self.serial_particle_loops)
+        for p in range(self.count[None]):
+            for i in ti.static(range(fld.n)):
+                fld[p][i] = src[p, i]
+
+    def _get(self, fld, slot: int) -> np.ndarray:
+        shape = (self.n_particles, self.dim) if fld.m == 1 else (self.n_particles, self.dim, self.dim)
+        out = np.empty(shape, dtype=self.real)
+        self._read_slot(fld, slot, out)
+        return out.astype(np.float64)
+
+    def _put(self, fld, slot: int, values: np.ndarray) -> None:
+        self._write_slot(fld, slot, np.ascontiguousarray(values, dtype=self.real))
