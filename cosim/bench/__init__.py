@@ -9,7 +9,9 @@
 - ``long``: one shipped scene of each type for 10,000 macro steps under the runner's guards (energy, volume).
 
 Each writes ``OUT/<name>.csv`` (cloth: ``OUT/cloth.json``, its results being nested; fuzz: also
-``OUT/repros/seed_N.yaml`` for each failure; accuracy: also ``accuracy.md`` and a PNG per problem). The modules import Taichi only when run, so this package is cheap to import.
+``OUT/repros/seed_N.yaml`` for each failure; accuracy: also a PNG per problem) and ``OUT/<name>.md``, a report
+that starts with the command line, the date, the hardware and the commit (``cosim.bench.report``); docs/benchmarks.md
+keeps the latest of each. The modules import Taichi only when run, so this package is cheap to import.
 """
 
 from __future__ import annotations
@@ -47,35 +49,45 @@ def run_bench(
         from cosim.errors import InputError
 
         raise InputError(f"--sizes, --baseline and --profile are options of `bench mpm`, not of `bench {what}`")
+    from cosim.bench.report import bench_command
+
+    command = bench_command(
+        what, out=out_dir, quick=quick, repeat=repeat, sizes=sizes, baseline=baseline, profile=profile, count=count,
+        seed=seed, steps=steps, scene=scenes, workers=workers, address=address,
+    )  # fmt: skip
     if what == "long":
         from cosim.bench.long_runs import run_long_bench
 
-        return run_long_bench(out_dir, steps=steps, quick=quick, workers=workers, address=address, scenes=scenes)
+        return run_long_bench(
+            out_dir, steps=steps, quick=quick, workers=workers, address=address, scenes=scenes, command=command
+        )
     if what == "fuzz":
         from cosim.bench.fuzz import run_fuzz_bench
         from cosim.errors import InputError
 
         if address:
             raise InputError("bench fuzz runs on this machine's processes (--workers); --address is not supported")
-        return run_fuzz_bench(out_dir, count=count, seed=seed, workers=workers)
+        return run_fuzz_bench(out_dir, count=count, seed=seed, workers=workers, command=command)
     if what == "accuracy":
         from cosim.bench.accuracy import run_accuracy_bench
 
-        return run_accuracy_bench(out_dir, quick=quick, workers=workers, address=address)
+        return run_accuracy_bench(out_dir, quick=quick, workers=workers, address=address, command=command)
     if what == "cloth":
         from cosim.bench.cloth import run_cloth_bench
 
-        return run_cloth_bench(out_dir, quick=quick, repeat=repeat)
+        return run_cloth_bench(out_dir, quick=quick, repeat=repeat, command=command)
     if what == "coupling":
         from cosim.bench.coupling import run_coupling_bench
 
-        return run_coupling_bench(out_dir, quick=quick, repeat=repeat)
+        return run_coupling_bench(out_dir, quick=quick, repeat=repeat, command=command)
     if what == "contact":
         from cosim.bench.contact import run_contact_bench
 
-        return run_contact_bench(out_dir, quick=quick, repeat=repeat, workers=workers, address=address)
+        return run_contact_bench(out_dir, quick=quick, repeat=repeat, workers=workers, address=address, command=command)
     if what == "mpm":
         from cosim.bench.mpm_modes import run_mpm_bench
 
-        return run_mpm_bench(out_dir, quick=quick, sizes=sizes, baseline=baseline, repeat=repeat, profile=profile)
+        return run_mpm_bench(
+            out_dir, quick=quick, sizes=sizes, baseline=baseline, repeat=repeat, profile=profile, command=command
+        )
     raise ValueError(f"unknown benchmark {what!r}; choose one of {BENCHMARKS}")

@@ -105,11 +105,15 @@ def _with_rate(observation: dict) -> dict:
 
 
 def run_accuracy_bench(
-    out_dir: Path, quick: bool = False, workers: int | None = None, address: str | None = None
+    out_dir: Path,
+    quick: bool = False,
+    workers: int | None = None,
+    address: str | None = None,
+    command: str | None = None,
 ) -> int:
     """Run the sweep (quick: each problem's coarsest default setting and the references at 2x it), write
-    accuracy.csv, accuracy.md and one diagram per problem into ``out_dir``; returns 0, or 3 if a case failed
-    (as ``cosim sweep`` does: the others are reported)."""
+    accuracy.csv, accuracy.md (headed by ``command``) and one diagram per problem into ``out_dir``; returns 0,
+    or 3 if a case failed (as ``cosim sweep`` does: the others are reported)."""
     from datetime import datetime
 
     from cosim.bench.accuracy_problems import PROBLEMS
@@ -129,6 +133,6 @@ def run_accuracy_bench(
     )
     raw = {"cases": [[c.problem, astuple(c.setting), c.reference] for c in cases], "results": results}
     (out_dir / "accuracy_raw.json").write_text(json.dumps(raw | {"measurement": measurement.lines()}))
-    failed = write_report(out_dir, PROBLEMS, cases, results, measurement, quick)
+    failed = write_report(out_dir, PROBLEMS, cases, results, measurement, quick, command)
     print(f"wrote {out_dir}/accuracy.csv, accuracy.md, accuracy_raw.json and accuracy_<problem>.png")
     return 3 if failed else 0

@@ -72,8 +72,13 @@ def rows_of(problems: dict, cases: list, results: list) -> list[dict]:
     return rows
 
 
-def write_report(out_dir: Path, problems: dict, cases: list, results: list, measurement, quick: bool) -> int:
-    """Write accuracy.csv, the diagrams and accuracy.md; returns the number of failed cases."""
+def write_report(
+    out_dir: Path, problems: dict, cases: list, results: list, measurement, quick: bool, command: str | None = None
+) -> int:
+    """Write accuracy.csv, the diagrams and accuracy.md (headed by ``command``, the date and the hardware:
+    ``cosim.bench.report``); returns the number of failed cases."""
+    from cosim.bench.report import bench_command, report_header
+
     rows = rows_of(problems, cases, results)
     sections, summary, targets = [], [], []
     for name, problem in problems.items():
@@ -92,8 +97,8 @@ def write_report(out_dir: Path, problems: dict, cases: list, results: list, meas
     extra = sorted({k for r in rows for k in r if k.startswith("obs_")})
     wp.write_csv(out_dir / "accuracy.csv", rows, COLUMNS + extra, measurement.lines())
     failed = [r for r in rows if r["status"] not in ("ok", "reference")]
-    lines = ["# Accuracy benchmark" + (" (--quick: a smoke run, not a measurement)" if quick else ""), ""]
-    lines += [f"{line}  " for line in measurement.lines()] + [""]
+    lines = ["Accuracy benchmark" + (" (--quick: a smoke run, not a measurement)" if quick else ""), ""]
+    lines += [f"{line}  " for line in measurement.lines()[1:]] + [""]  # [0], the hardware, is in the header
     lines += [
         "Cost (`s / sim s`): CPU seconds of the macro steps after the first (which compiles) per simulated",
         "second, one Taichi thread per case (gradient: one forward + backward over the rollout); the wall",
@@ -113,7 +118,8 @@ def write_report(out_dir: Path, problems: dict, cases: list, results: list, meas
     lines += [*targets, "", *sections]
     if failed:
         lines += ["## Failed cases", ""] + [f"- {r['problem']} {_setting(r)}: {r['status']}" for r in failed] + [""]
-    (out_dir / "accuracy.md").write_text("\n".join(lines))
+    header = report_header(command or bench_command("accuracy", quick=quick))
+    (out_dir / "accuracy.md").write_text(header + "\n".join(lines))
     print("\n".join(lines[: lines.index("## Cheapest measured setting per error target") + 4 + len(targets)]))
     return len(failed)
 

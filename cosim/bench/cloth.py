@@ -298,7 +298,7 @@ def measure_taco(steps: int, repeat: int) -> dict:
 
 def _lines(result: dict) -> list[str]:
     lines = [
-        f"Cloth benchmark on {result['hardware']}; float64; medians of {result['repeat']} runs; {result['date']}",
+        f"Cloth benchmark: float64; medians of {result['repeat']} runs",
         "",
         "Cloth step alone (square sheet, pinned edge, gravity, dt 2e-3 s, k_stretch 1000 N/m, k_bend 0.015 N m):",
         "",
@@ -362,11 +362,13 @@ def _write_partial(out_dir: Path, result: dict) -> None:
     (out_dir / "cloth.json").write_text(json.dumps(result, indent=1) + "\n")
 
 
-def run_cloth_bench(out_dir: Path, quick: bool = False, repeat: int = 3) -> int:
-    """Every part; writes OUT/cloth.json and OUT/cloth.md and prints the tables."""
+def run_cloth_bench(out_dir: Path, quick: bool = False, repeat: int = 3, command: str | None = None) -> int:
+    """Every part; writes OUT/cloth.json and OUT/cloth.md (headed by ``command``, the date and the hardware) and
+    prints the tables."""
     import datetime
 
     from cosim.bench.cloth_step import run_cloth_step_bench
+    from cosim.bench.report import bench_command, report_header
     from cosim.run import hardware_line
     from cosim.runtime import ensure_taichi
 
@@ -389,7 +391,8 @@ def run_cloth_bench(out_dir: Path, quick: bool = False, repeat: int = 3) -> int:
         result["taco"] = measure_taco(200, 1)
     lines = _lines(result)
     (out_dir / "cloth.json").write_text(json.dumps(result, indent=1) + "\n")
-    (out_dir / "cloth.md").write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    header = report_header(command or bench_command("cloth"))
+    (out_dir / "cloth.md").write_text(header + "\n".join(lines) + "\n")
+    print(header + "\n".join(lines))
     print(f"wrote {out_dir}/cloth.json, cloth.md")
     return 0

@@ -206,11 +206,17 @@ def _median_rows(repeats: list[list[dict]]) -> list[dict]:
 
 
 def run_contact_bench(
-    out_dir: Path, quick: bool = False, repeat: int = 3, workers: int | None = None, address: str | None = None
+    out_dir: Path,
+    quick: bool = False,
+    repeat: int = 3,
+    workers: int | None = None,
+    address: str | None = None,
+    command: str | None = None,
 ) -> int:
     """All models x thicknesses, ``repeat`` times (on Ray with ``workers`` > 1 or an ``address``: see
-    ``run_tables``); writes contact.csv, contact.md and contact.png."""
-    from cosim.run import hardware_line
+    ``run_tables``); writes contact.csv, contact.md (headed by ``command``, the date and the hardware) and
+    contact.png."""
+    from cosim.bench.report import bench_command, report_header
     from cosim.runtime import ensure_taichi
 
     ensure_taichi("cpu", "float32")
@@ -239,7 +245,7 @@ def run_contact_bench(
         writer.writerows(rows)
     lines = [
         (
-            f"Contact benchmark: {steps} frames of shake_container_2d on {hardware_line()}; "
+            f"Contact benchmark: {steps} frames of shake_container_2d; "
             f"seconds: median of {repeat} repetitions "
             + (f"as Ray jobs on {workers or 'all'} workers" if on_ray(workers, address) else "in one process")
         ),
@@ -262,9 +268,10 @@ def run_contact_bench(
                 f"{100 * tracked['objective_decrease_total']:.1f}% (the paper: 83.1% on average at its alpha = 0.2)."
             ),
         ]
-    (out_dir / "contact.md").write_text("\n".join(lines) + "\n")
+    header = report_header(command or bench_command("contact"))
+    (out_dir / "contact.md").write_text(header + "\n".join(lines) + "\n")
     _figure(rows, out_dir / "contact.png")
-    print("\n".join(lines))
+    print(header + "\n".join(lines))
     print(f"wrote {out_dir}/contact.csv, contact.md, contact.png")
     return 0
 

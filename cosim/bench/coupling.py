@@ -203,8 +203,10 @@ def _overhead_rows(quick: bool, repeat: int) -> list[dict]:
     return rows
 
 
-def run_coupling_bench(out_dir: Path, quick: bool = False, repeat: int = 3) -> int:
-    from cosim.run import hardware_line
+def run_coupling_bench(out_dir: Path, quick: bool = False, repeat: int = 3, command: str | None = None) -> int:
+    """Both scenes' coupled steps and the scene API's overhead; writes coupling.csv, overhead.csv and coupling.md
+    (headed by ``command``, the date and the hardware)."""
+    from cosim.bench.report import bench_command, report_header
     from cosim.runtime import ensure_taichi
     from cosim.scene import load_scene
     from cosim.scene.shipped import scenes_dir
@@ -238,7 +240,7 @@ def run_coupling_bench(out_dir: Path, quick: bool = False, repeat: int = 3) -> i
         writer.writerows(rows)
     lines = [
         (
-            f"Coupling benchmark on {hardware_line()}; float64; medians of {repeat} runs; forward over {steps} "
+            f"Coupling benchmark: float64; medians of {repeat} runs; forward over {steps} "
             f"macro steps, backward/forward over {grad_steps}"
         ),
         "",
@@ -267,8 +269,9 @@ def run_coupling_bench(out_dir: Path, quick: bool = False, repeat: int = 3) -> i
             f"| {r['dim']} | {r['particles']} | {r['substeps']} x {r['macro_steps']} | {r['api_ms']:.1f} | "
             f"{r['bare_ms']:.1f} | {r['host_ms']:.2f} | {r['overhead']:+.1%} |"
         )
-    (out_dir / "coupling.md").write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    header = report_header(command or bench_command("coupling"))
+    (out_dir / "coupling.md").write_text(header + "\n".join(lines) + "\n")
+    print(header + "\n".join(lines))
     print(f"wrote {out_dir}/coupling.csv, overhead.csv, coupling.md")
     return 0
 

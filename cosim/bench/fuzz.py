@@ -13,8 +13,9 @@ in a worker process with a wall-time limit (``fuzz_workers``). Outcomes:
 
 A scene or simulation error is clear when its message names where: a scene key path
 (``mpm.bodies[1].material.E``), a named body, skeleton or cloth, or a step (``names_a_place``);
-an unclear one counts as a failure too. The benchmark writes ``OUT/fuzz.csv`` (one row per seed)
-and, for every failure, the scene as ``OUT/repros/seed_N.yaml`` (``cosim run`` reproduces it).
+an unclear one counts as a failure too. The benchmark writes ``OUT/fuzz.csv`` (one row per seed),
+``OUT/fuzz.md`` (the counts per outcome, headed by the command, date and hardware) and, for every
+failure, the scene as ``OUT/repros/seed_N.yaml`` (``cosim run`` reproduces it).
 """
 
 from __future__ import annotations
@@ -177,12 +178,15 @@ def run_fuzz(
     return [records[i] for i in range(len(seeds))]
 
 
-def run_fuzz_bench(out_dir: Path, count: int = 200, seed: int = 0, workers: int | None = None) -> int:
+def run_fuzz_bench(
+    out_dir: Path, count: int = 200, seed: int = 0, workers: int | None = None, command: str | None = None
+) -> int:
     """``count`` scenes from seeds ``seed``, ``seed + 1``, ... on ``workers`` processes (default: the cores);
-    writes OUT/fuzz.csv and the failures' scenes, prints the counts per outcome; exit code 1 on any failure."""
+    writes OUT/fuzz.csv, OUT/fuzz.md (headed by ``command``, the date and the hardware) and the failures' scenes,
+    prints the counts per outcome; exit code 1 on any failure."""
     import os
 
-    from cosim.run import hardware_line
+    from cosim.bench.report import bench_command, report_header
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -205,17 +209,29 @@ def run_fuzz_bench(out_dir: Path, count: int = 200, seed: int = 0, workers: int 
     if failed:
         write_repros(failed, out_dir / "repros")
     counts = Counter(r.outcome for r in records)
-    print(f"fuzz on {hardware_line()}: {count} scenes in {wall:.0f} s ({workers} worker process(es))")
-    print("outcomes: " + ", ".join(f"{name} {counts.get(name, 0)}" for name in OUTCOMES))
     valid = count - counts.get("scene-error", 0)
-    print(f"passed validation and build: {valid} of {count} ({100 * valid / count:.0f}%)")
     unclear = [r for r in records if not r.clear]
+    lines = [
+        (
+            f"Fuzz benchmark: {count} random scenes (seeds {seeds[0]}..{seeds[-1]}), {workers} worker process(es), "
+            f"{TIMEOUT:g} s limit per case; {wall:.0f} s in all"
+        ),
+        "",
+        "| outcome | scenes |",
+        "|---|---|",
+        *[f"| {name} | {counts.get(name, 0)} |" for name in OUTCOMES],
+        "",
+        f"Passed validation and build: {valid} of {count} ({100 * valid / count:.0f}%).",
+    ]
     if unclear:
-        print(f"error messages naming no key, body or step: {len(unclear)} (seeds {[r.seed for r in unclear]})")
+        lines.append(f"Error messages naming no key, body or step: {len(unclear)} (seeds {[r.seed for r in unclear]}).")
     for r in failed:
         message = " | ".join(line.strip() for line in r.message.splitlines() if line.strip())
-        print(f"  FAILED seed {r.seed}: {r.outcome}: {message[:400]}" + (f" [{r.where}]" if r.where else ""))
-    print(f"wrote {out_dir}/fuzz.csv" + (f", {len(failed)} scenes in {out_dir}/repros" if failed else ""))
+        lines.append(f"- FAILED seed {r.seed}: {r.outcome}: {message[:400]}" + (f" [{r.where}]" if r.where else ""))
+    header = report_header(command or bench_command("fuzz", count=count, seed=seed, workers=workers))
+    (out_dir / "fuzz.md").write_text(header + "\n".join(lines) + "\n")
+    print(header + "\n".join(lines))
+    print(f"wrote {out_dir}/fuzz.csv, fuzz.md" + (f", {len(failed)} scenes in {out_dir}/repros" if failed else ""))
     return 1 if failed else 0
 
 

@@ -48,9 +48,11 @@ def run_long_bench(
     workers: int | None = None,
     address: str | None = None,
     scenes: list[str] | None = None,
+    command: str | None = None,
 ) -> int:
     """Run ``scenes`` (default every one of ``SCENE_TYPES``) for ``steps`` macro steps (``quick``: 200);
-    exit 3 if one stopped."""
+    writes long.csv and long.md (headed by ``command``, the date and the hardware); exit 3 if one stopped."""
+    from cosim.bench.report import bench_command, report_header
     from cosim.scale.jobs import run_case
     from cosim.scene.shipped import scenes_dir
 
@@ -82,7 +84,7 @@ def run_long_bench(
         writer = csv.DictWriter(f, fieldnames=COLUMNS, extrasaction="ignore")
         writer.writeheader()
         writer.writerows(rows)
-    (out_dir / "long.md").write_text(_table(rows, steps))
+    (out_dir / "long.md").write_text(report_header(command or bench_command("long")) + _table(rows, steps))
     print(f"wrote {out_dir / 'long.csv'}, {out_dir / 'long.md'}")
     return 0 if all(r["outcome"] == "ran" for r in rows) else 3
 
@@ -105,7 +107,7 @@ def _summary(row: dict) -> str:
 
 def _table(rows: list[dict], steps: int) -> str:
     lines = [
-        f"Long runs: {steps} macro steps per scene on {hardware_line()}",
+        f"Long runs: {steps} macro steps per scene",
         "",
         "| scene | type | outcome | wall s | max energy excess | work J | liquid volume min..max | through walls |",
         "|---|---|---|---|---|---|---|---|",

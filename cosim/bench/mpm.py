@@ -5,7 +5,8 @@ the process's peak RSS is the configuration's memory): ``cosim/bench/mpm_measure
 path with a given interpreter, so that the same measurement also runs against a baseline
 checkout (``--baseline``, ``cosim.bench.mpm_baseline``). Reported: forward and
 forward+backward particle-substeps per second (compile excluded), the backward/forward time
-ratio, peak resident memory and the hardware.
+ratio, peak resident memory and the hardware; each mode writes a CSV and a markdown report headed by the
+command line, the date and the hardware (``cosim.bench.report``).
 
 Modes: the four ``CONFIGS`` (default); ``--sizes``, 3D float32 from 10k to 1M particles
 (``SIZES``, grid from ``sized_grid``); ``--baseline DIR``, current/baseline ratios of either
@@ -129,6 +130,15 @@ def print_table(rows: list[dict], columns: list[tuple[str, str, str]]) -> None:
         print(" ".join(format(r[k], fmt) for k, _, fmt in columns))
 
 
+def write_report(path: Path, command: str | None, title: str, rows: list[dict], columns: list) -> None:
+    """``rows`` as a markdown table of ``columns`` under the report header of ``command`` and ``title``."""
+    from cosim.bench.report import bench_command, markdown_table, report_header
+
+    lines = [title, "", *markdown_table(rows, columns)]
+    path.write_text(report_header(command or bench_command("mpm")) + "\n".join(lines) + "\n")
+    print(f"wrote {path}")
+
+
 def write_csv(path: Path, rows: list[dict]) -> None:
     """Rows (dicts with the same keys) to a CSV file."""
     with open(path, "w", newline="") as f:
@@ -138,8 +148,8 @@ def write_csv(path: Path, rows: list[dict]) -> None:
     print(f"wrote {path}")
 
 
-def run_throughput(out_dir: Path, configs: list[dict], name: str) -> int:
-    """Every configuration in its own process; prints a table and writes ``out_dir/<name>.csv``."""
+def run_throughput(out_dir: Path, configs: list[dict], name: str, command: str | None = None) -> int:
+    """Every configuration in its own process; prints a table and writes ``out_dir/<name>.csv`` and ``<name>.md``."""
     from cosim.run import hardware_line
 
     rows = []
@@ -150,6 +160,8 @@ def run_throughput(out_dir: Path, configs: list[dict], name: str) -> int:
     print(f"\nMPM benchmark on {hardware_line()}; steps = substeps x macro steps, elastic block, dt 1e-4 s")
     print_table(rows, TABLE)
     write_csv(out_dir / f"{name}.csv", rows)
+    title = "MPM benchmark: elastic block, dt 1e-4 s; steps = substeps x macro steps; rates in M particle-substeps/s"
+    write_report(out_dir / f"{name}.md", command, title, rows, TABLE)
     return 0
 
 
@@ -172,7 +184,7 @@ def by_kernel(records: list) -> list[list]:
     return sorted(kernels.values(), key=lambda r: -r[1])
 
 
-def run_profile(out_dir: Path, top: int = 10) -> int:
+def run_profile(out_dir: Path, top: int = 10, command: str | None = None) -> int:
     """Taichi's kernel profiler over 3D 64³ float32: ms per substep of the top kernels, forward and backward."""
     from cosim.run import hardware_line
 
@@ -190,4 +202,11 @@ def run_profile(out_dir: Path, top: int = 10) -> int:
             print(f"  {ms:8.3f} ms {100 * ms / total:5.1f}% {launches:6.2f} launches  {name}")
         rows += [{"phase": phase, "kernel": k, "ms_per_substep": ms, "launches_per_substep": n} for k, ms, n in kernels]
     write_csv(out_dir / "mpm_profile.csv", rows)
+    title = (
+        f"Kernel profile, 3D 64³ float32, {row['particles']:,} particles, 20 substeps x 3 macro steps: ms per "
+        "substep in each kernel (backward: its forward-named kernels are the checkpoint recompute)"
+    )
+    columns = [("phase", "phase", ""), ("kernel", "kernel", ""), ("ms_per_substep", "ms per substep", ".3f"),
+               ("launches_per_substep", "launches per substep", ".2f")]  # fmt: skip
+    write_report(out_dir / "mpm_profile.md", command, title, rows, columns)
     return 0

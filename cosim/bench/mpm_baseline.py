@@ -21,7 +21,15 @@ import subprocess
 import sys
 from pathlib import Path
 
-from cosim.bench.mpm import CONFIG_COLUMNS, Interpreter, current_interpreter, print_table, run_config, write_csv
+from cosim.bench.mpm import (
+    CONFIG_COLUMNS,
+    Interpreter,
+    current_interpreter,
+    print_table,
+    run_config,
+    write_csv,
+    write_report,
+)
 from cosim.errors import InputError
 
 MEASURES = ["fwd_Mpss", "fwd_bwd_Mpss", "bwd_fwd_ratio", "peak_MiB"]
@@ -94,9 +102,12 @@ def medians(runs: list[dict]) -> list[dict]:
     return list(rows.values())
 
 
-def run_baseline_bench(out_dir: Path, configs: list[dict], folder: Path, repeat: int, name: str) -> int:
+def run_baseline_bench(
+    out_dir: Path, configs: list[dict], folder: Path, repeat: int, name: str, command: str | None = None
+) -> int:
     """Measure ``configs`` with the baseline in ``folder`` and with this cosim; print and write
-    ``out_dir/<name>_baseline.csv`` (medians, ratios) and ``<name>_baseline_runs.csv`` (every run)."""
+    ``out_dir/<name>_baseline.csv`` (medians, ratios), ``<name>_baseline.md`` (the same, headed by ``command``,
+    the date and the hardware) and ``<name>_baseline_runs.csv`` (every run)."""
     from cosim.run import hardware_line
 
     base = baseline_interpreter(folder)
@@ -106,5 +117,7 @@ def run_baseline_bench(out_dir: Path, configs: list[dict], folder: Path, repeat:
     print(f"\nCurrent / baseline on {hardware_line()}; medians of {repeat} interleaved runs per version (M/s)")
     print_table(rows, TABLE)
     write_csv(out_dir / f"{name}_baseline.csv", rows)
+    title = f"Current / baseline ({folder}): medians of {repeat} interleaved runs per version, rates in M/s"
+    write_report(out_dir / f"{name}_baseline.md", command, title, rows, TABLE)
     write_csv(out_dir / f"{name}_baseline_runs.csv", runs)
     return 0

@@ -12,7 +12,7 @@ from cosim.bench.mpm_baseline import run_baseline_bench
 
 def run_mpm_bench(
     out_dir: Path, quick: bool = False, sizes: bool = False, baseline: Path | None = None, repeat: int = 3,
-    profile: bool = False,
+    profile: bool = False, command: str | None = None,
 ) -> int:  # fmt: skip
     """``cosim bench mpm``: the chosen mode (module docstring) into ``out_dir``; returns the exit code."""
     if profile and (sizes or baseline is not None):
@@ -23,10 +23,10 @@ def run_mpm_bench(
     configs = size_configs(quick) if sizes else fixed_configs(quick)
     try:
         if profile:
-            return run_profile(out_dir)
+            return run_profile(out_dir, command=command)
         if baseline is not None:
-            return run_baseline_bench(out_dir, configs, baseline, repeat, "mpm_sizes" if sizes else "mpm")
-        return run_throughput(out_dir, configs, "mpm_sizes" if sizes else "mpm")
+            return run_baseline_bench(out_dir, configs, baseline, repeat, "mpm_sizes" if sizes else "mpm", command)
+        return run_throughput(out_dir, configs, "mpm_sizes" if sizes else "mpm", command)
     except RuntimeError as err:
         print(err, file=sys.stderr)
         return 1
