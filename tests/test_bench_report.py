@@ -1,5 +1,5 @@
 """Every `cosim bench` report starts with the command line, the date (UTC) and the hardware
-(``cosim.bench.report``), so that a report copied into docs/benchmarks/ says what produced it and where."""
+(``cosim.bench.report``), so that a report copied into docs/bench/ says what produced it and where."""
 
 from datetime import datetime, timedelta, timezone
 from pathlib import Path
