@@ -4,9 +4,8 @@
 every attribute read on an instance (fields, settings, and ``__class__`` in each ``isinstance``
 Taichi's kernel launch makes on its template arguments), looks the name up in the class dict,
 checks for properties and kernels, and recurses into attributes that are data-oriented objects
-themselves: about 50 such calls per kernel launch here. On small scenes, where kernels take
-microseconds, that was a quarter of a step: pull_door's coupled step went from 4.15 to 3.2 ms with
-this lookup (Intel Xeon, 2 cores). The lookup below does the same for what our classes hold
+themselves: dozens of such calls per kernel launch. On small scenes, where kernels take
+microseconds, that is a large share of a step. The lookup below does the same for what our classes hold
 (plain attributes, methods, kernels): the attribute by the normal rules, and a kernel bound to
 the instance the way Taichi binds it. Properties whose getter is a kernel, which Taichi supports
 and these classes do not use, are not.
