@@ -11,7 +11,7 @@ built with ``requires_grad`` keeps ``substeps + 1`` slots and one grid (and
 stress scratch) per substep, so one macro step is all resident for the adjoint
 (``cosim.engines.mpm_adjoint``), which never re-runs P2G.
 
-One substep, split into the phases a coupler drives (see DESIGN.md):
+One substep, split into the phases a coupler drives (docs/architecture.md):
 
 - pre-coupling  ``p2g``: stress from F (per material), scatter of mass,
   APIC momentum, stress momentum and external impulses (controls; particle
@@ -119,11 +119,11 @@ class MPMKernels(StencilFunctions, SlotIO):
         if not self.bounded_grid:
             self.active_hi.from_numpy(np.tile(np.array(self.nodes, dtype=np.int32), (self.n_grids, 1)))
         # the grid passes cover the particles' box (``_clear_grid``), which few particles keep small: a
-        # small engine's grid loops are serial on any grid (pour_water, 469 particles on 48³: 5.0 -> 3.6 ms
-        # a step, measured). Few particles spread over a large grid would make them slower than parallel.
+        # small engine's grid loops are serial on any grid (a thread-pool dispatch per pass would cost more than
+        # the pass). Few particles spread over a large grid would make them slower than parallel.
         self.serial_grid_loops = choices.serial_nodes(int(np.prod(self.nodes))) or self.serial_particle_loops
         # whether the adjoint computes dL/dE and dL/dnu: an objective optimising neither turns it off
-        # (``Objective.evaluate``), which saved 0.5-1 ms of a 2.4-3 ms 3D float32 stress adjoint (measured)
+        # (``Objective.evaluate``), which saves a good part of the 3D stress adjoint
         self.material_grads = True
         self.grid_hooks: list = []  # contact models rewriting grid velocities, in order
         self.box_margin = 0  # nodes added around the box P2G bounds: the largest any grid hook asks for
@@ -341,7 +341,7 @@ class MPMKernels(StencilFunctions, SlotIO):
             F_trial = (ti.Matrix.identity(float, self.dim) + dt * new_C) @ F
             new_F = mat.project(F_trial, mu, lam, self.yield_stress[b])
             self.F[dst, p] = new_F
-            self.watch.flag(p, s, xp, F, new_x, new_F)  # last: a branch earlier slowed the loop (measured)
+            self.watch.flag(p, s, xp, F, new_x, new_F)  # last: a branch earlier slows the loop
 
     # ------------------------------------------------------------ substep phases
     def _mass_floor(self) -> float:
