@@ -26,7 +26,7 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 # Compiled kernels persist across processes like Taichi's offline cache: the first cloth of a
-# process then costs ~1.5 s instead of ~7 s (measured). JAX's defaults skip kernels that compile
+# process then starts from the cache instead of compiling. JAX's defaults skip kernels that compile
 # in under a second or are small, which is all of ours, hence the two thresholds.
 if not os.environ.get("JAX_COMPILATION_CACHE_DIR"):
     _cache = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "cosim" / "jax"
