@@ -1,6 +1,6 @@
 """Our differentiable cloth: backward Euler solved to convergence, with the exact adjoint of that step.
 
-Why this design (see ``/work/shared/reference/anchors-cloth-optimisation.md`` section 1): an
+Why this design: an
 explicit integrator is CFL-bound (stable dt ~ 1/sqrt(k), 32x more steps over 3 decades of
 stiffness); projective dynamics converges slowly at the tolerances gradients need and fits only
 projective energies; XPBD/VBD have no usable gradients. Backward Euler written as an energy
