@@ -63,8 +63,7 @@ class StencilFunctions:
 
     # The stencil as rows of three nodes along the last axis: ``self.rows`` holds each row's offsets on the
     # first d - 1 axes. A node's weight is the row's weight times its own along the last axis, so a
-    # gather sums each row first and weights it once: about half the arithmetic of a node-by-node sum
-    # (G2P in 3D float32: 1.4x faster on one thread, 2.3x on two; the P2G adjoint ~2x; measured).
+    # gather sums each row first and weights it once: about half the arithmetic of a node-by-node sum.
     @ti.func
     def row_node(self, row: ti.template(), c: ti.template()):
         """The offset of node c (0, 1, 2 along the last axis) of row ``row``."""
