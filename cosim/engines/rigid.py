@@ -322,7 +322,7 @@ class RigidEngine(RigidAdjoint):
         return {name: values.copy() for name, values in self._known_bodies[1].items()}
 
     def _body_states_now(self) -> dict[str, np.ndarray]:
-        """``body_states`` from DART (a transform and a Jacobian per body, ~40 us a call in pull_door: a
+        """``body_states`` from DART (a transform and a Jacobian per body, each a Python call into DART: a
         coupled step asks four times, for the CFL speed, the tunnelling poses and the boundary)."""
         nb = len(self._bodies)
         out = {
