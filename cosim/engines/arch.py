@@ -4,9 +4,8 @@ A scatter (P2G, the G2P adjoint) on a CPU runs fastest on one thread with plain 
 threads contend on atomic adds to the same grid nodes. On a GPU one thread would use one of
 thousands of cores, so there the scatter is parallel with atomic adds.
 
-A parallel loop on a CPU costs a dispatch to Taichi's thread pool and back, 50-100 us per loop
-(measured: a one-iteration parallel loop 160 us a launch, the same loop serialised 58 us, on a
-2-core Intel Xeon VM); a loop with less work than that runs faster on the launching thread. So
+A parallel loop on a CPU costs a dispatch to Taichi's thread pool and back, tens of microseconds
+per loop; a loop with less work than that runs faster on the launching thread. So
 on a CPU, loops over fewer than ``PARALLEL_MIN_PARTICLES`` particles or ``PARALLEL_MIN_NODES``
 grid nodes are serial (a small scene such as pull_door's 78 particles paid the dispatch in every
 one of its ~29 loops a step), and so are a small engine's grid loops, which cover only its
