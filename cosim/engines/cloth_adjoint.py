@@ -52,7 +52,7 @@ class ClothAdjoint:
             entries = self._element_hessians(record.x_next, mat, record.contacts)
             H = self._ff.matrix(entries, self._mass_diagonal(mat))
             try:
-                lu = splu(H, **SPD_LU)  # the usual case, and 2-3x faster than pivoting
+                lu = splu(H, **SPD_LU)  # the usual case, and faster than pivoting
                 if not _positive_definite(lu):
                     lu = splu(H)
             except RuntimeError as exc:
