@@ -1,12 +1,11 @@
 """Hand-written adjoints of the MPM's particle kernels (P2G scatter, G2P gather, stress, advection).
 
 Taichi's reverse-mode autodiff of the transfer kernels unrolls the 3^d stencil
-into a large reverse program: in 3D the reverse P2G and G2P alone compiled for
-about 50 s (measured). The adjoints here are written out instead. Their gathers
+into a large reverse program that is slow to compile in 3D. The adjoints here are
+written out instead. Their gathers
 sum the stencil row by row like the forward G2P (``row_weight``, ``row_gradient``:
 a row's sums along the last axis, then its weight and the weight's gradient once),
-which halved the 3D float32 P2G and G2P adjoints against a node-by-node sum
-(2026-12-04) and compiles a cold 3D float32 backward in under 10 s. The G2P adjoint
+about half the arithmetic of a node-by-node sum, and a short compile. The G2P adjoint
 is split in two: a parallel gather into the particle
 position and a serial scatter onto the grid, like the forward P2G (with no grid
 hook, straight onto the grid velocity's adjoint). The per-particle stress
@@ -141,7 +140,7 @@ class MPMAdjointKernels(MPMKernels):
         """Hand the adjoint of the gathered velocities to their source (``velocity_grad``: the
         engine's grid velocity or the last grid hook, which passes it upstream) and clear it.
         A grid pass of its own: inside the G2P adjoint's stencil loop, the hooks' adjoint chain
-        took 10 s to compile in 3D (measured), this pass 1 s. Over grid copy g's box: the G2P adjoint
+        compiles far longer in 3D than this pass does. Over grid copy g's box: the G2P adjoint
         wrote nothing outside it."""
         ti.loop_config(serialize=self.serial_grid_loops)
         for I in ti.grouped(
@@ -224,8 +223,8 @@ class MPMAdjointKernels(MPMKernels):
         (mu = E / (2 (1 + nu)), lam = E nu / q, q = (1 + nu)(1 - 2 nu)), and reset the sum. Called after
         the particle loop: as its own one-iteration loop it runs once the sums are complete. Summing into
         a 0-D field lets Taichi keep one sum per thread (its thread-local reduction); adds to E.grad[b]
-        (b known at run time) were atomic adds to one address from every particle, which cost 0.9-1.5 ms
-        of a 2.3-3.0 ms 3D stress adjoint (30k particles, 2 threads)."""
+        (b known at run time) would be atomic adds to one address from every particle, contended by
+        every thread."""
         for _ in range(1):
             mu_bar, lam_bar = self.lame_bar[None]
             E, nu = self.E[b], self.nu[b]
