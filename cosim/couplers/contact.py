@@ -212,7 +212,7 @@ class ForecastContact:
     def _forecast(self, src: ti.i32, g: ti.i32, s: ti.i32, dt: float):
         """Look-ahead G2P v_init = W^T v_hat, BC_p (``_constrain``), and the scatter of the
         constrained particles' W M_p r. One kernel (atomic adds only for constrained particles):
-        each launch costs ~50 us on this CPU, as much as the work here."""
+        a kernel launch costs as much as the work here."""
         e = self.engine
         ti.loop_config(serialize=e.serial_particle_loops)
         for p in range(e.count[None]):
@@ -349,7 +349,7 @@ class ForecastContact:
 
     def zero_grad(self) -> None:
         """The per-particle adjoints (the correction's, grid-shaped, are zeroed per substep by the engine:
-        ``grid_adjoints``; its fill over all grid copies was 2.5 ms of a 12 ms pour_water backward step)."""
+        ``grid_adjoints``, over the particles' box, instead of a fill over all grid copies)."""
         for fld in (self.v_init, self.residual):
             fld.grad.fill(0)
 
