@@ -18,7 +18,7 @@ import numpy as np
 
 ERROR_FLOOR = 1e-7  # errors below this are drawn at it (a log axis has no zero)
 # The summary names a setting better than the default only by more than these factors: cost, because
-# the same work measured up to 2.2x apart on the loaded 2-core machine (2026-12-02); error, because
+# the same work can measure up to about 2x apart on a loaded machine; error, because
 # smaller differences are not worth a change of setting (the errors themselves are reproducible).
 COST_TIE, ERROR_TIE = 2.0, 1.2
 
