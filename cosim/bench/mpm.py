@@ -38,7 +38,7 @@ FILL = 0.25  # the block's side over the domain's: 64³ for the 31³ block of CO
 MEASURE = Path(__file__).with_name("mpm_measure.py")
 # Taichi's kernel cache for the children (any version reads TI_* variables; ours win if set): a
 # folder of its own, since the shared ~/.cache/taichi is capped at 100 MB with LRU eviction and,
-# with other sessions compiling, lost the baseline's 3D adjoint kernels (230 s to compile) between runs.
+# with other processes compiling, can evict a baseline's slow-to-compile 3D adjoint kernels between runs.
 CACHE_ENV = {
     "TI_OFFLINE_CACHE_FILE_PATH": str(Path.home() / ".cache" / "cosim" / "taichi_bench_mpm"),
     "TI_OFFLINE_CACHE_MAX_SIZE_OF_FILES": str(2**30),  # a C int in Taichi: under 2 GiB
