@@ -6,7 +6,7 @@ code: it imports only the standard library, numpy and ``cosim.runtime`` / ``cosi
 and adapts to both engine APIs it knows:
 
 - the engine contract (``advance(dt, n)``; ``step(inputs) -> (outputs, record)``;
-  ``vjp(record, {"state": g})``), from 2026-12-01 on;
+  ``vjp(record, {"state": g})``), the current one;
 - the older API of commit b24c315 (``step(dt, n) -> StepInfo``; a record dict holding the state
   before the step, dt, substeps, impulse and the step's token; ``vjp(record, g)``).
 
@@ -138,7 +138,7 @@ def _timed(fn) -> float:
 def _time_forward(engine, substeps: int, macro_steps: int, profile: bool) -> tuple[float, float, list]:
     """(compile s, median s of a macro step, kernel profile) of ``macro_steps`` x ``substeps`` substeps.
     The median of the macro steps, not their mean: a shared machine's bursts of load hit a few steps of a
-    run, and on this kind of machine a whole short run's mean varied by up to 2x (measured)."""
+    run, and would move a whole short run's mean."""
     compile_s = _timed(lambda: (_forward(engine, 1), engine.state()))
     _profile_start(profile)
     step_s = [_timed(lambda: _forward(engine, substeps)) for _ in range(macro_steps)]
