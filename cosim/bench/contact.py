@@ -17,7 +17,7 @@ and two wall thicknesses. Reported per run:
 - seconds: wall time of the simulation steps after the first (which compiles the
   kernels), without the per-frame bookkeeping. All models of one thickness are
   built together and advanced in turn, 10 frames each, so that slow phases of
-  this shared machine (run-to-run swings of 2x were seen) fall on all of them
+  a shared machine fall on all of them
   alike; the whole table is repeated ``repeat`` times in one process and the
   median is reported, with the time / grid ratio taken within each repetition
   and its median.
