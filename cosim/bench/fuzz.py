@@ -37,7 +37,7 @@ __all__ = ["OUTCOMES", "FuzzRecord", "names_a_place", "random_scene", "run_case"
 
 OUTCOMES = ("ran", "scene-error", "simulation-error", "crash", "hang", "silent-nan")
 FAILURES = ("crash", "hang", "silent-nan")
-TIMEOUT = 300.0  # [s] per case, Taichi start-up and compiles included (cases took 2-100 s on a loaded 2-core machine)
+TIMEOUT = 300.0  # [s] per case, Taichi start-up and compiles included: ample for a case, even on a loaded machine
 
 _TOP_KEYS = "time|mpm|rigid|articulated|cloth|contact|controls|loss|gradient|optimize|output"
 _PLACE = re.compile(
