@@ -31,7 +31,7 @@ CONFIGS = [
     {"dim": 3, "cells": 64, "side": 31, "precision": "float32"},  # 29,791 particles
     {"dim": 3, "cells": 64, "side": 31, "precision": "float64"},
 ]
-# (particles wanted, substeps, macro steps): fewer steps at large N keep the sweep near 10 minutes,
+# (particles wanted, substeps, macro steps): fewer steps at large N keep the sweep short,
 # and fewer substeps bound the gradient engine's K grids (K x 8 M nodes at 1M particles).
 SIZES = [(10_000, 20, 10), (30_000, 20, 10), (100_000, 20, 4), (300_000, 10, 3), (1_000_000, 5, 2)]
 FILL = 0.25  # the block's side over the domain's: 64³ for the 31³ block of CONFIGS
