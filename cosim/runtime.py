@@ -5,10 +5,9 @@ precision or architecture re-initialises it, which invalidates every Taichi
 field made before. One process therefore runs one configuration at a time,
 and tests group themselves by precision.
 
-Kernel optimisation: Taichi's advanced IR optimisation is off unless asked for. On this
-project's 2-core CPU it made a 3D adjoint test compile in 137 s instead of 38 s and the
-default scene's cold run take 35 s instead of 24 s, while the optimised MPM kernels ran
-only about 1.3x faster (measured). Runs that are long enough to win it back, and every
+Kernel optimisation: Taichi's advanced IR optimisation is off unless asked for: it makes
+compiles several times longer (a 3D adjoint most) for kernels that run only somewhat
+faster. Runs that are long enough to win it back, and every
 benchmark, turn it on: ``optimize_kernels(True)``, ``cosim run --optimize-kernels`` or the
 environment variable ``COSIM_OPTIMIZE_KERNELS=1``.
 
