@@ -32,7 +32,7 @@ class AccuracyLevel:
     precision: str
 
 
-# From the sweep of 2026-12-02 (docs/accuracy.md): the grid moved the error far more than the CFL
+# From `cosim bench accuracy` (docs/accuracy.md): the grid moves the error far more than the CFL
 # number, so the levels halve or double it; coarse grids hid the time error, so coarse takes cfl 0.6
 # (0.9 was cheaper still but went unstable once, on viscous water); default is the shipped settings;
 # fine keeps cfl 0.3 and takes float64, as costly here and the more accurate at the finest grids.
