@@ -300,8 +300,8 @@ def make_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--optimize-kernels",
         action="store_true",
-        help="compile Taichi kernels with advanced optimisation: ~1.3x faster kernels for a 1.5-3.6x longer "
-        "compile; pays off on long runs (always on for `bench`)",
+        help="compile Taichi kernels with advanced optimisation: faster kernels for a longer compile; pays off "
+        "on long runs (always on for `bench`)",
     )
     sub = p.add_subparsers(dest="command", required=True)
 
