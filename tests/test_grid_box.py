@@ -1,8 +1,8 @@
 """Grid passes cover only the nodes the particles reach: the box P2G bounds, widened by the hooks' margin.
 
 The clear, the grid update, the contact hooks (grid and forecast models) and their adjoints loop over
-that box; before 2026-12-04 a contact hook made them loop over the whole grid (93% of a pour_water
-step). Widening the box to the whole grid must change nothing the particles see.
+that box instead of the whole grid, which would dominate a small scene's step on a large grid. Widening
+the box to the whole grid must change nothing the particles see.
 """
 
 import numpy as np
