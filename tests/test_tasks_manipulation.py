@@ -11,9 +11,8 @@ from conftest import check_task_improves
 
 TASKS = {
     # the fingers close the 1 cm to the block at 5 cm/s and touch its material at step 50 (the contact
-    # offset keeps particle centres a radius off; within 10 steps the gradient was 0): measured
-    # 1.3721e-3 -> 1.1502e-3 -> 9.104e-4 against the target made with the contact of 2026-12-03 (against
-    # the earlier target 7.276e-4 -> 5.840e-4 -> 4.372e-4)
+    # offset keeps particle centres a radius off; within 10 steps the gradient is 0): measured
+    # 1.3721e-3 -> 1.1502e-3 -> 9.104e-4 over the first iterations
     "squeeze_plasticine": (60, 0.75),
     "pour_franka": (10, 0.999),  # measured: 0.21695 -> 0.21640 (-0.25%)
 }
