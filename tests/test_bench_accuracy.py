@@ -132,7 +132,7 @@ def test_the_report_from_made_up_observations(tmp_path):
 
 def test_coarsest_bar_vibrates_at_the_closed_form_period():
     """The quick case of elastic_bar (32 cells/m: 4 cells across the strip), here in float64: its
-    period within 1% of the plane-strain Rayleigh-Love bar's (measured 0.35% on 2026-12-02; the
+    period within 1% of the plane-strain Rayleigh-Love bar's (measured 0.35%; the
     lateral-inertia term alone is 0.3%, so the bound also fails without it at finer grids), and the
     error shrinks at 64 cells/m (measured 0.12%)."""
     bar = PROBLEMS["elastic_bar"]
