@@ -13,8 +13,9 @@ import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 SCENES = ROOT / "scenes"
-# The files with the longest tests (minutes of kernel compiles on a cold cache), longest first: xdist's loadfile hands files to the two workers in collection order, and a long
-# file started last leaves the other worker idle; short files at the end even the two out.
+# The files with the longest tests (minutes of kernel compiles on a cold cache), longest first: xdist's
+# loadfile hands files to the two workers in collection order, and a long file started last leaves the
+# other worker idle; short files at the end even the two out.
 LONGEST_FIRST = (
     "test_cli",
     "test_coupling",
