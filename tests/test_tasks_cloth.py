@@ -1,8 +1,8 @@
 """push_towel and make_taco (cloth) from their plain initial guesses: see test_tasks.py.
 
-Marked ``long_task``: left out of the default run (``python -m pytest -q -m long_task`` runs them, about
-4 minutes here), because with Taichi's cache empty each compiles its 3D kernels and adjoints for about a
-minute and the default run must stay within CI's 10 minutes."""
+Marked ``long_task``: left out of the default run (``python -m pytest -q -m long_task`` runs them), because
+with Taichi's cache empty each compiles its 3D kernels and adjoints first, and the default run must stay
+within CI's time limit."""
 
 from __future__ import annotations
 
