@@ -29,7 +29,7 @@ def tiny(tmp_path_factory):
     return path
 
 
-@pytest.mark.scale_out  # 35 s of two Ray starts; the default run keeps two other Ray sweeps
+@pytest.mark.scale_out  # two Ray starts; the default run keeps two other Ray sweeps
 def test_a_sweep_gives_the_same_numbers_on_one_and_two_workers(tiny, tmp_path):
     """Four cases (E x nu) with 1 worker (2 Taichi threads) and with 2 (1 thread each): every metric
     agrees to round-off (1e-9 relative; Taichi's atomic adds may sum in another order), and the
