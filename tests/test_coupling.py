@@ -126,8 +126,8 @@ def test_a_light_box_floats_with_the_submerged_fraction_of_its_density_ratio():
     """Archimedes (forecast contact): a free box of density 500 dropped on water of density 1000
     settles half submerged; box height and water surface averaged over the last 0.8 s (the
     surface: median over columns away from the box of the top particle + dx/4). In the fidelity
-    set (``-m fidelity``) beside its matrix of models and density ratios: 15 s the default run
-    could not afford."""
+    set (``-m fidelity``) beside its matrix of models and density ratios: too long for the default
+    run."""
     cells, steps = 64, 400
     dx = 1 / cells
     floor, width = 3 * dx, 1 - 6 * dx
