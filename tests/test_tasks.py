@@ -1,5 +1,5 @@
 """The paper's optimisation tasks, each from its plain initial guess: `cosim optimize` lowers the loss at
-every one of 3 iterations on a shortened rollout (the full runs are in the README's task table).
+every one of 3 iterations on a shortened rollout (the full runs' latest results are in docs/tasks.md).
 
 The six tasks are split over three files (this one, test_tasks_manipulation.py, test_tasks_cloth.py) so
 that the suite's two workers share them: each 3D task compiles its kernels and their adjoints for about
