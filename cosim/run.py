@@ -262,6 +262,7 @@ def run_scene(
     """
     from tqdm import tqdm
 
+    from cosim.kernel_cache import compile_seconds
     from cosim.scene.build import build_system
 
     t_build = time.perf_counter()
@@ -309,10 +310,11 @@ def run_scene(
         "max_cfl": sim.max_cfl,
         "wall_time_s": wall,
         "build_time_s": build_s,
+        "kernel_compile_s": compile_seconds(),  # Taichi's compiles and cache loads so far: small when warm
         "particle_substeps_per_s": sim.mpm.n_particles * sum(substeps) / max(wall, 1e-12),
         "energy_initial": recorder.energy[0],
         "energy_final": recorder.energy[-1],
-        "energy_budget": {  # cosim.conservation: the runner's check, every 10 steps
+        "energy_budget": {  # cosim.conservation: the runner's check, every macro step
             "work_done_J": sim.conservation.work,
             "max_excess": sim.conservation.excess,
         },

@@ -16,7 +16,8 @@ the scale-out workers, ``cosim.scale``, so that W workers on C cores do not run 
 Kernel cache: Taichi keeps compiled kernels in its offline cache (``~/.cache/taichi`` by
 default, capped here at 1 GiB instead of Taichi's 100 MB unless ``TI_OFFLINE_CACHE_MAX_SIZE_OF_FILES``
 says otherwise); ``COSIM_TAICHI_CACHE=DIR`` puts it elsewhere (a shared disk on a cluster, a scratch
-folder in CI). Kernel profile: ``COSIM_KERNEL_PROFILER=1`` turns on Taichi's kernel profiler (each
+folder in CI); processes sharing it take turns at its lock, and a lock left by a killed process is
+cleared (``cosim.kernel_cache``). Kernel profile: ``COSIM_KERNEL_PROFILER=1`` turns on Taichi's kernel profiler (each
 launch timed; ``ti.profiler.print_kernel_profiler_info()``), used by ``cosim bench mpm --profile``.
 These options are chosen by arch in ``init_options``; what the engines choose by
 arch is in ``cosim.engines.arch``.
@@ -79,8 +80,11 @@ def ensure_taichi(arch: str = "cpu", precision: str = "float64", gradients: bool
     key = (arch, precision, optimize)
     import taichi as ti
 
+    from cosim import kernel_cache
+
     if _current is not None:
-        ti.reset()
+        kernel_cache.finish()  # ti.reset, Taichi writing its kernel cache in a window of its own
+        _current = None
     arch_obj = {"cpu": ti.cpu, "cuda": ti.cuda, "gpu": ti.gpu}[arch]
     debug = os.environ.get("COSIM_TAICHI_DEBUG", "") == "1"
     ti.init(
@@ -102,6 +106,7 @@ def ensure_taichi(arch: str = "cpu", precision: str = "float64", gradients: bool
             f"arch: {arch}: Taichi found no usable {arch} GPU on this machine and would run on the CPU; "
             "set arch: cpu (scene key, or --arch cpu), or run where an NVIDIA GPU and its driver are installed"
         )
+    kernel_cache.start()  # the cache index loaded in a window, a stale lock cleared first
     _current = key
 
 
