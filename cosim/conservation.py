@@ -11,12 +11,33 @@ Gravity is inside the energy (its potential), so a falling body does no "work".
 The energies and volumes are the engine's (``MPMEngine.energies``, summed on the device), of its current
 state: ``begin_step`` is called before a step, ``end_step`` after it.
 
-Every ``every`` macro steps of a rollout that runs from step 0, E(t) > E(0) + W(t) + ``share`` * scale
+After every macro step of a rollout that runs from step 0, E(t) > E(0) + W(t) + ``MARGIN`` * scale
 stops the run with a ``SimulationError`` naming the body whose energy grew most; scale = E(0) above
-its floor (all mass at the domain's lowest point) plus sum |W|, so the check tolerates round-off and
-the small energy the particle representation can gain (APIC's affine part is not in E), and catches
-instabilities, which grow without bound. Replays from a checkpoint (set_state to step k > 0) are steps
-already checked and are skipped.
+its floor (all mass at the domain's lowest point) plus sum |W|. Replays from a checkpoint (set_state to
+step k > 0) are steps already checked and are skipped. The check reads one small per-body table summed on
+the device: one kernel launch (~0.05 ms here) for a small scene (2D 676 particles of a 3 ms step, 3D 833
+of a 1.5 ms step), 0.3-0.4 ms for 3D 4k particles (an 11 ms step), 0.7-0.8 ms for 33k (a 10-substep 55 ms
+step): the polar decompositions of the strain energy (measured).
+
+The margin, 10% of the scale: what a stable run can show above E(0) + W is bounded, an instability is not.
+- MLS-MPM's explicit (symplectic Euler) update keeps a nearby energy exactly; the measured one oscillates
+  about it by at most omega dt / 2 of a mode's energy, with omega dt <= pi cfl dx / L for a body's
+  vibration modes (L its size; the CFL bound (|v| + c) dt <= cfl dx): 5% for a body 10 cells wide at
+  cfl 0.3; the grid-scale modes, up to omega dt = 2 cfl, are damped by the transfers. No drift.
+- Under gravity the update loses m g^2 dt^2 / 2 per substep; grid contact and plasticity only dissipate.
+- APIC's affine velocity is not in E; it holds at most 4 (dx / L)^2 of a rotation's kinetic energy (4%
+  at 10 cells), which it can hand back.
+- The work is exact for a rigid body's velocity field and for control impulses (see above); a cloth's
+  -sum impulse . v is a one-point rule per substep, O(dt) of |W|, which the scale holds.
+Together under 10% of a body's kinetic and elastic energy at 10 cells and cfl 0.3, and the scale holds
+that energy and the height above the floor besides.
+An instability multiplies its energy at every substep, so it passes any fixed margin within a step or two
+of showing: the margin sets the false alarms, not the detection. Measured with the check every step and
+no stop, every shipped scene over its full length (2026-12-04; not pour_franka_meshes, which needs pybullet):
+the largest excess 7e-7 of the scale (pull_door), most never above step 0's gravity loss (-1e-5), but
+pour_thin_glass +0.050 at step 0: the forecast contact kicks the water resting within a cell of the cup's
+floor as the cup starts (0.54 J of kinetic and strain energy against 0.05 J of work; grid contact: -6e-4,
+particle: +0.016); it decays to +0.002 by step 11. The margin keeps twice that.
 """
 
 from __future__ import annotations
@@ -27,16 +48,18 @@ import numpy as np
 
 from cosim.errors import SimulationError
 
+MARGIN = 0.1  # of the scale: the energy a stable run may show above its start plus the work (module docstring)
+
 
 class Conservation:
     """Energy budget and liquid volume of one rollout of an MPM engine (``cosim.engines.mpm``)."""
 
-    def __init__(self, engine, gravity, domain, every: int = 10, share: float = 0.1):
+    def __init__(self, engine, gravity, domain, share: float = MARGIN):
         self.engine = engine
         self.work = 0.0
         self.excess = None
         self.gravity = np.asarray(gravity, dtype=np.float64)
-        self.every, self.share = every, share
+        self.share = share  # inf: measured, never stops a run (a benchmark that counts failures)
         corners = np.array(list(itertools.product(*[(0.0, float(L)) for L in domain])))
         # the lowest potential any particle can have: -g . x at the domain corner furthest along g
         self.floor = -float(engine.mass.sum()) * float((corners @ self.gravity).max())
@@ -68,12 +91,10 @@ class Conservation:
         self.work_abs += abs(joules)
 
     def end_step(self, step_index: int) -> None:
-        """After step ``step_index`` (0-based), the engine in the state it ended in: the check every ``every`` steps."""
+        """After step ``step_index`` (0-based), the engine in the state it ended in: the check."""
         if self._next is None:
             return
         self._next = step_index + 1
-        if self._next % self.every:
-            return
         now = self.engine.energies()
         self._track_volume(now)
         E = sum(e["total"] for e in now.values())
