@@ -6,8 +6,9 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from cosim.bench.mpm import fixed_configs, run_profile, run_throughput, size_configs
+from cosim.bench.mpm import GUARDS_OFF, fixed_configs, run_profile, run_throughput, size_configs
 from cosim.bench.mpm_baseline import run_baseline_bench
+from cosim.guards import announce
 
 
 def run_mpm_bench(
@@ -19,6 +20,7 @@ def run_mpm_bench(
         from cosim.errors import InputError
 
         raise InputError("--profile runs alone (3D 64³ float32); leave out --sizes and --baseline")
+    announce(GUARDS_OFF)
     out_dir.mkdir(parents=True, exist_ok=True)
     configs = size_configs(quick) if sizes else fixed_configs(quick)
     try:

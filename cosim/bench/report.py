@@ -12,6 +12,8 @@ import subprocess
 from datetime import datetime, timezone
 from pathlib import Path
 
+from cosim.guards import GuardsOff
+
 # `cosim bench`'s defaults (``cosim.cli``): options left at them are not written into the command line
 DEFAULTS = {"out": "out/bench", "quick": False, "repeat": 3, "count": 200, "seed": 0, "steps": 10_000}
 
@@ -53,9 +55,10 @@ def git_commit(root: Path | None = None) -> str | None:
     return commit + (" with uncommitted changes" if dirty else "")
 
 
-def report_header(command: str, now: datetime | None = None) -> str:
+def report_header(command: str, now: datetime | None = None, guards_off: GuardsOff | None = None) -> str:
     """Markdown lines a report starts with: the command line as its title, then date (UTC), hardware
-    (``cosim.run.hardware_line``) and the cosim commit when cosim runs from a git checkout; ends with a blank line."""
+    (``cosim.run.hardware_line``), the cosim commit when cosim runs from a git checkout and the runner's
+    guards the benchmark ran without (``cosim.guards``); ends with a blank line."""
     from cosim.run import hardware_line
 
     now = (now or datetime.now(timezone.utc)).astimezone(timezone.utc)
@@ -63,6 +66,8 @@ def report_header(command: str, now: datetime | None = None) -> str:
     commit = git_commit()
     if commit:
         lines.append(f"- cosim: commit {commit}")
+    if guards_off is not None:
+        lines.append(f"- {guards_off.line()}")
     return "\n".join(lines) + "\n\n"
 
 
