@@ -9,7 +9,8 @@ The main entry points, imported lazily (``import cosim`` loads neither Taichi no
 - ``Objective(system, loss=None)``: the loss of a rollout as a function of every
   differentiable parameter the engines declare; ``evaluate(params, grad=True)``.
 - ``check_gradients(objective.evaluate, params, names, scales)``: adjoint against central
-  differences.
+  differences, each direction judged against the difference's measured noise floor
+  (``DirectionCheck.passed(tolerance)``).
 - ``run_scene(scene, out_dir)``: what ``cosim run`` does (trajectory, metrics, preview).
 
 Example::

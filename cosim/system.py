@@ -30,7 +30,6 @@ from typing import Any
 import numpy as np
 
 from cosim.conservation import Conservation, control_work
-from cosim.couplers.tunnelling import TunnelWatch
 from cosim.engines.contract import add_states
 from cosim.errors import SimulationError
 from cosim.step_record import StepRecord
@@ -118,7 +117,11 @@ class CoupledSystem:
         self.conservation = Conservation(mpm, self.gravity, self.domain)
         self.passed_through: dict[str, int] = {}  # "body/rigid body": particles that went through it
         watched = rigid is not None and rigid.sources  # rigid bodies the MPM sees (none: links it does not)
-        self.tunnels = TunnelWatch(mpm, rigid.sources, 0.25 * self.dx) if watched else None
+        self.tunnels = None
+        if watched:
+            from cosim.couplers.tunnelling import TunnelWatch  # Taichi: importing the system (ActionPlan) needs none
+
+            self.tunnels = TunnelWatch(mpm, rigid.sources, 0.25 * self.dx)
         self.tunnel_share = TUNNEL_SHARE  # inf: count only (a benchmark measuring the contact's failures)
 
     # ------------------------------------------------------------ state of every engine

@@ -1,8 +1,9 @@
 """Malformed inputs, each a case: `cosim validate` and `cosim run` exit 2 with a message that names
 the key path or the file (and says what to do), no traceback, and `run` writes nothing.
 
-Every case is checked by `validate` (NumPy only: no Taichi, no DART), which makes every check
-`run` makes before its first step; `run` then refuses the same input at the same place.
+Every case is checked by `validate`, which makes every check `run` makes before its first step
+(``cosim.scene.start``; the build-time ones are in test_start_checks.py); `run` then refuses the
+same input at the same place.
 """
 
 from __future__ import annotations

@@ -92,7 +92,7 @@ def _split_grid_contact(scene, GridContact):
     from cosim.couplers.mpm_kinematic import MPMKinematicCoupler
     from cosim.couplers.sdf import shape_sdf
     from cosim.engines.kinematic import KinematicEngine
-    from cosim.scene.build import build_motion
+    from cosim.scene.start import build_motion
     from cosim.system import CoupledSystem
 
     rigid = scene.rigid

@@ -12,8 +12,6 @@ from pathlib import Path
 
 import numpy as np
 
-from cosim.errors import SceneError
-
 
 def perturb(params: dict, names: list[str], scales: dict, fraction: float, seed: int, bounds, projections) -> dict:
     """A copy of ``params`` with each of ``names`` moved by ``fraction`` x its scale x N(0, 1) noise
@@ -53,13 +51,12 @@ def optimize_scene(
     from cosim.adjoint.report import plot_losses, write_history
     from cosim.run import Recorder
     from cosim.scene.build import build_system
+    from cosim.scene.params import select_params
 
     spec = scene.optimize
     sim = build_system(scene, requires_grad=True, steps=steps)
     obj = Objective(sim)
-    names = obj.select(spec.params)
-    if not names:
-        raise SceneError(f"optimize.params: none of {spec.params} exists in this scene (impulse needs controls)")
+    names = select_params(obj, scene, "optimize")
     iterations = iterations or spec.iterations
     lr = lr or spec.learning_rate
     method = method or spec.method

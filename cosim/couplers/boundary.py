@@ -28,7 +28,8 @@ source (``RigidBoundaries``), the cloth's traced distance (``ClothBoundary``) is
 import numpy as np
 import taichi as ti
 
-from cosim.couplers.sdf import SDFField, SDFGrid
+from cosim.couplers.sdf_field import SDFField
+from cosim.couplers.sdf_grid import SDFGrid
 from cosim.engines.contract import BOUNDARY_KEYS, REACTION_KEYS
 from cosim.engines.data_oriented import data_oriented
 

@@ -2,9 +2,9 @@
 
 Distances are in metres, negative inside the body. Primitives are evaluated in
 closed form and sampled on a grid (``sdf_grid.SDFGrid``) over their bounding box
-plus ``padding``; mesh files go to ``sdf_mesh.mesh_sdf``. The grid, its
-interpolated lookup and its Taichi twin ``SDFField`` live in ``sdf_grid``; they
-are importable from here too. Shape kinds and their size keys come from
+plus ``padding``; mesh files go to ``sdf_mesh.mesh_sdf``. The grid and its
+interpolated lookup live in ``sdf_grid``, its Taichi twin ``SDFField`` in ``sdf_field``;
+both are importable from here too (``SDFField`` on first use: building grids imports no Taichi). Shape kinds and their size keys come from
 ``cosim.engines.shapes``.
 
 Body frame: the primitive's centre is the origin; cylinders, capsules and
@@ -15,14 +15,13 @@ from pathlib import Path
 
 import numpy as np
 
-from cosim.couplers.sdf_grid import SDFField, SDFGrid, grid_over
+from cosim.couplers.sdf_grid import SDFGrid, grid_over
 from cosim.couplers.sdf_mesh import mesh_sdf
 from cosim.engines.meshes import load_mesh
 from cosim.engines.shapes import CONTAINER_KINDS, PRIMITIVE_SIZES
 from cosim.errors import SceneError
 
 __all__ = [
-    "SDFField",
     "SDFGrid",
     "function_sdf",
     "in_cavity",
@@ -37,6 +36,15 @@ __all__ = [
     "shape_spec_sdf",
     "surface_points",
 ]
+
+
+def __getattr__(name: str):
+    """``SDFField`` imported when first asked for (it imports Taichi; grids need only NumPy)."""
+    if name == "SDFField":
+        from cosim.couplers.sdf_field import SDFField
+
+        return SDFField
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 # ---------------------------------------------------------------- primitives

@@ -1,7 +1,7 @@
 """Exact signed distance fields of watertight triangle meshes, cached on disk.
 
 Meshes (any format trimesh reads, watertight) are evaluated exactly by a
-brute-force Taichi kernel: the distance to the closest point of every triangle,
+brute-force Taichi kernel (``sdf_mesh_kernel``, imported only on a cache miss): the distance to the closest point of every triangle,
 the sign from the generalised winding number; the node normals are the unit
 directions from the closest surface points. Distances in metres (the mesh's
 units), negative inside; body frame = the mesh's own frame. Mesh fields are
@@ -14,71 +14,12 @@ import os
 from pathlib import Path
 
 import numpy as np
-import taichi as ti
 
 from cosim.couplers.sdf_grid import SDFGrid, grid_over
 from cosim.engines.meshes import require_watertight
 from cosim.errors import SceneError
 
 SDF_VERSION = "2"  # bump when the computation changes: invalidates the cache
-
-
-@ti.func
-def _closest_on_triangle(p, a, b, c):
-    """Closest point to p on triangle abc (Ericson, Real-Time Collision Detection 5.1.5)."""
-    ab, ac, ap = b - a, c - a, p - a
-    d1, d2 = ab.dot(ap), ac.dot(ap)
-    result = a
-    done = d1 <= 0 and d2 <= 0
-    bp = p - b
-    d3, d4 = ab.dot(bp), ac.dot(bp)
-    if not done and d3 >= 0 and d4 <= d3:
-        result, done = b, True
-    vc = d1 * d4 - d3 * d2
-    if not done and vc <= 0 and d1 >= 0 and d3 <= 0:
-        result, done = a + d1 / (d1 - d3) * ab, True
-    cp = p - c
-    d5, d6 = ab.dot(cp), ac.dot(cp)
-    if not done and d6 >= 0 and d5 <= d6:
-        result, done = c, True
-    vb = d5 * d2 - d1 * d6
-    if not done and vb <= 0 and d2 >= 0 and d6 <= 0:
-        result, done = a + d2 / (d2 - d6) * ac, True
-    va = d3 * d6 - d5 * d4
-    if not done and va <= 0 and (d4 - d3) >= 0 and (d5 - d6) >= 0:
-        result, done = b + (d4 - d3) / ((d4 - d3) + (d5 - d6)) * (c - b), True
-    if not done:
-        denom = 1.0 / (va + vb + vc)
-        result = a + ab * (vb * denom) + ac * (vc * denom)
-    return result
-
-
-@ti.kernel
-def _mesh_sdf_kernel(
-    points: ti.types.ndarray(), tris: ti.types.ndarray(), out: ti.types.ndarray(), closest: ti.types.ndarray()
-):
-    for i in range(points.shape[0]):
-        p = ti.Vector([points[i, 0], points[i, 1], points[i, 2]], dt=ti.f64)
-        best = 1e30
-        best_q = p
-        winding = 0.0
-        for t in range(tris.shape[0]):
-            a = ti.Vector([tris[t, 0, 0], tris[t, 0, 1], tris[t, 0, 2]], dt=ti.f64)
-            b = ti.Vector([tris[t, 1, 0], tris[t, 1, 1], tris[t, 1, 2]], dt=ti.f64)
-            c = ti.Vector([tris[t, 2, 0], tris[t, 2, 1], tris[t, 2, 2]], dt=ti.f64)
-            q = _closest_on_triangle(p, a, b, c)
-            if (p - q).norm_sqr() < best:
-                best, best_q = (p - q).norm_sqr(), q
-            # solid angle of the triangle seen from p (Van Oosterom and Strackee)
-            ra, rb, rc = a - p, b - p, c - p
-            la, lb, lc = ra.norm(), rb.norm(), rc.norm()
-            num = ra.dot(rb.cross(rc))
-            den = la * lb * lc + ra.dot(rb) * lc + rb.dot(rc) * la + rc.dot(ra) * lb
-            winding += 2.0 * ti.atan2(num, den)
-        sign = -1.0 if winding / (4.0 * 3.141592653589793) > 0.5 else 1.0
-        out[i] = sign * ti.sqrt(best)
-        for k in ti.static(range(3)):
-            closest[i, k] = best_q[k]
 
 
 def cache_dir() -> Path:
@@ -98,8 +39,9 @@ def mesh_key(vertices: np.ndarray, faces: np.ndarray, spacing: float, padding: f
 def mesh_sdf(mesh, spacing: float, padding: float, key: str = "mesh", use_cache: bool = True) -> SDFGrid:
     """Exact SDF of a watertight trimesh (body frame = the mesh's own frame).
 
-    ``key`` names the mesh in error messages (the scene key or file).
-    Needs Taichi initialised (any precision: the kernel computes in float64).
+    ``key`` names the mesh in error messages (the scene key or file). The kernel runs in the
+    Taichi already started (any precision: it computes in float64), or, when none is (``cosim
+    validate``), in one started on the CPU in float64; a cached field needs no Taichi.
     """
     require_watertight(
         mesh,
@@ -119,7 +61,12 @@ def mesh_sdf(mesh, spacing: float, padding: float, key: str = "mesh", use_cache:
     grid = SDFGrid(origin, spacing, np.zeros(counts))
     points = np.ascontiguousarray(grid.nodes().reshape(-1, 3))
     out, closest = np.zeros(len(points)), np.zeros_like(points)
-    _mesh_sdf_kernel(points, np.ascontiguousarray(vertices[faces]), out, closest)
+    from cosim.couplers.sdf_mesh_kernel import mesh_sdf_kernel
+    from cosim.runtime import current, ensure_taichi
+
+    if current() is None:
+        ensure_taichi("cpu", "float64")
+    mesh_sdf_kernel(points, np.ascontiguousarray(vertices[faces]), out, closest)
     grid.values = out.reshape(counts)
     grid.normals = _mesh_normals(grid, points, closest, out)
     if use_cache:

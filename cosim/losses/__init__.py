@@ -40,29 +40,24 @@ class Loss:
     @classmethod
     def for_system(cls, system) -> Loss:
         """The loss of the scene ``system`` was built from."""
-        scene = system.scene
         cloths = [e for e in system.engines.values() if hasattr(e, "mesh")]
+        x0 = system.initial["mpm"]["x"]
+        return cls.for_scene(system.scene, system.slices, x0, system.mpm.mass, system.engines.get("dart"), cloths)
+
+    @classmethod
+    def for_scene(cls, scene, slices: dict, x0: np.ndarray, mass: np.ndarray, rigid=None, cloths=()) -> Loss:
+        """The loss of ``scene`` bound to its MPM particles (``slices`` per body into the initial positions
+        ``x0`` (N, d) [m] and masses ``mass`` (N,) [kg]), its DART engine ``rigid`` and cloth engines."""
         cloth_names = {c.name for c in cloths}
         spec = scene.loss
 
         def bind(term):  # pose targets of MPM bodies start from the body's initial positions
             if term.type == "pose_target" and term.body not in cloth_names:
-                rest = system.initial["mpm"]["x"][system.slices[term.body]]
-                return term.model_copy(update={"rest_positions": rest})
+                return term.model_copy(update={"rest_positions": x0[slices[term.body]]})
             return term
 
         spec = spec.model_copy(update={"terms": [bind(t) for t in spec.terms]}) if spec.terms else bind(spec)
-        return cls(
-            spec,
-            scene.dim,
-            scene.seed,
-            system.slices,
-            system.mpm.mass,
-            system.engines.get("dart"),
-            cloths,
-            scene.dx,
-            scene.source_dir,
-        )
+        return cls(spec, scene.dim, scene.seed, slices, mass, rigid, list(cloths), scene.dx, scene.source_dir)
 
     @property
     def has_running(self) -> bool:

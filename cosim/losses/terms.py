@@ -21,17 +21,7 @@ Term = Callable[[dict, dict, float], float]  # (state, grad to add into, weight)
 def make_term(spec, dim, seed, slices, mass, rigid, cloths, dx, source_dir, key: str) -> Term:
     """The term ``spec`` (a ``LossTermSpec``) bound to the system's bodies."""
     if spec.type == "joint_target":
-        if rigid is None:
-            raise SceneError(f"{key}.type: joint_target needs an articulated: section")
-        dofs, engine, target = rigid.dof_indices(spec.skeleton, spec.joint), rigid.name, np.asarray(spec.target, float)
-        if spec.components is not None:
-            if max(spec.components) >= len(dofs):
-                raise SceneError(
-                    f"{key}.components: joint '{spec.joint}' has {len(dofs)} coordinates (0..{len(dofs) - 1})"
-                )
-            dofs = dofs[spec.components]
-        if len(target) != len(dofs):
-            raise SceneError(f"{key}.target: {len(dofs)} numbers (the joint's coordinates read), got {len(target)}")
+        dofs, engine, target = joint_dofs(spec, rigid, key), rigid.name, np.asarray(spec.target, float)
         quantity = "qd" if spec.velocity else "q"
 
         def joint(state, grad, weight):  # |q_joint - target|^2 (or its velocities)
@@ -56,6 +46,31 @@ def make_term(spec, dim, seed, slices, mass, rigid, cloths, dx, source_dir, key:
         return value
 
     return on_points
+
+
+def joint_dofs(spec, rigid, key: str) -> np.ndarray:
+    """The coordinates (indices into the DART engine ``rigid``'s positions) a joint_target term ``spec``
+    at ``key`` reads: its skeleton's joint, ``components`` of it if given; refused naming the key, the
+    value and what the skeletons have when the skeleton, joint, components or target do not fit."""
+    if rigid is None:
+        raise SceneError(f"{key}.type: joint_target needs an articulated: section")
+    skeletons = [s.name for s in rigid.specs]
+    if spec.skeleton not in skeletons:
+        raise SceneError(f"{key}.skeleton: no skeleton '{spec.skeleton}'; skeletons: {skeletons}")
+    joints = [j.getName() for j in rigid.skeletons[skeletons.index(spec.skeleton)].getJoints()]
+    if spec.joint not in joints:
+        raise SceneError(f"{key}.joint: skeleton '{spec.skeleton}' has no joint '{spec.joint}'; joints: {joints}")
+    dofs = rigid.dof_indices(spec.skeleton, spec.joint)
+    if spec.components is not None:
+        if max(spec.components) >= len(dofs):
+            raise SceneError(
+                f"{key}.components: joint '{spec.joint}' has {len(dofs)} coordinates "
+                f"({'0..' + str(len(dofs) - 1) if len(dofs) else 'none'}), got {spec.components}"
+            )
+        dofs = dofs[spec.components]
+    if len(spec.target) != len(dofs):
+        raise SceneError(f"{key}.target: {len(dofs)} numbers (the joint's coordinates read), got {len(spec.target)}")
+    return dofs
 
 
 def _points_term(spec, dim, seed, n, masses, rest, dx, source_dir, key):

@@ -9,8 +9,11 @@ the modules behind it:
 - ``accuracy``: the ``accuracy: coarse | default | fine`` hint (grid refinement, CFL number, precision),
   applied to the parsed YAML before the schema;
 - ``loader``: ``load_scene`` / ``parse_scene``, which run the schema, then the checks;
+- ``params``: the parameter names ``gradient.params`` / ``optimize.params`` may use in a scene;
 - ``particles``: the soft bodies sampled into particles with NumPy only (``cosim validate``);
 - ``shipped``: where the scenes shipped with cosim and their assets are (``scenes_dir``, ``resolve_asset``);
+- ``preflight`` and ``start``: every check ``cosim run`` makes before its first step, and the host-side
+  parts they build (``check_start``: ``cosim validate`` runs it, ``build_system`` builds on it);
 - ``build``: the scene made runnable, ``build_system(scene) -> CoupledSystem`` (only what it uses);
 - ``articulated``: DART skeletons, link SDFs and mass properties of the ``articulated:`` section.
 

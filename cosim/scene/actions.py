@@ -8,8 +8,13 @@ from cosim.errors import SceneError
 from cosim.system import ActionPlan
 
 
-def action_sequence(spec, action_size: int, n_segments: int) -> np.ndarray:
-    """(n_segments, action_size): ``spec.sequence`` then ``spec.initial`` (default zeros) for the rest."""
+def action_sequence(spec, action_size: int, n_segments: int, key: str = "actions") -> np.ndarray:
+    """(n_segments, action_size): ``spec.sequence`` then ``spec.initial`` (default zeros) for the rest;
+    an action of another length is refused naming ``key``."""
+    given = [("initial", spec.initial)] if spec.initial is not None else []
+    for name, action in given + [(f"sequence[{n}]", a) for n, a in enumerate(spec.sequence)]:
+        if len(action) != action_size:
+            raise SceneError(f"{key}.{name}: {len(action)} entries, the action has {action_size}")
     out = np.zeros((n_segments, action_size))
     if spec.initial is not None:
         out[:] = spec.initial
@@ -27,7 +32,7 @@ def action_bounds(spec, action_size: int, key: str) -> tuple[np.ndarray, np.ndar
         raise SceneError(f"{key}.bounds: two lists of {action_size} numbers (the action size), [lower, upper]")
     if np.any(lower > upper):
         raise SceneError(f"{key}.bounds: a lower bound exceeds its upper bound")
-    sequence = action_sequence(spec, action_size, max(len(spec.sequence), 1))
+    sequence = action_sequence(spec, action_size, max(len(spec.sequence), 1), key)
     if np.any(sequence < lower) or np.any(sequence > upper):
         raise SceneError(f"{key}: the initial actions lie outside bounds; start inside [lower, upper]")
     return lower, upper
@@ -36,7 +41,7 @@ def action_bounds(spec, action_size: int, key: str) -> tuple[np.ndarray, np.ndar
 def action_plan(spec, action_size: int, n_segments: int, key: str):
     """The ``ActionPlan`` of an ``actions:`` block: its sequence of ``n_segments`` actions, held ``spec.hold``
     steps each, with the block's bounds and scale (a cloth's ``reach`` projection is added by the cloth)."""
-    sequence = action_sequence(spec, action_size, n_segments)
+    sequence = action_sequence(spec, action_size, n_segments, key)
     return ActionPlan(sequence, spec.hold, action_bounds(spec, action_size, key), action_scale(spec, action_size, key))
 
 

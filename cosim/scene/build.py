@@ -4,6 +4,9 @@ Only what the scene uses is built: soft bodies only -> the MPM engine alone (no
 boundaries, no contact hook, no DART, no cloth code); ``rigid:`` bodies -> a
 kinematic engine and its coupler; ``articulated:`` skeletons -> the DART engine and
 its coupler for the links the MPM sees; one contact model serves every boundary source.
+The checks before the first step, and the host-side parts they build (SDFs, the DART engine,
+cloth meshes and action plans), come from ``cosim.scene.start.check_start``, which ``cosim
+validate`` runs too; this module adds the Taichi side.
 """
 
 from __future__ import annotations
@@ -13,10 +16,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from cosim.engines import so3
 from cosim.errors import SceneError
-from cosim.scene.preflight import BodyStart, control_indices, hydrostatic_compression, preflight
+from cosim.scene.preflight import BodyStart, control_indices, hydrostatic_compression
 from cosim.scene.schema import Scene
+from cosim.scene.start import Start, check_start
 from cosim.system import Control, CoupledSystem, Stepping
 
 
@@ -74,31 +77,6 @@ def build_controls(scene: Scene, slices: dict[str, slice], x0: np.ndarray) -> li
     return controls
 
 
-def build_motion(spec, dim: int):
-    """A kinematic.Motion from a validated rigid-body spec."""
-    from cosim.engines.kinematic import Motion, Segment
-
-    p0 = np.asarray(spec.position, dtype=np.float64)
-    R0 = so3.scene_rotation(spec.rotation, dim)
-    m = spec.motion
-
-    def omega(value):
-        return (
-            float(value) if dim == 2 else (np.zeros(3) if isinstance(value, (int, float)) else np.asarray(value, float))
-        )
-
-    if m.type == "static":
-        return Motion("constant", p0, R0, [Segment(math.inf, np.zeros(dim), omega(0.0))])
-    if m.type == "constant":
-        return Motion("constant", p0, R0, [Segment(math.inf, np.asarray(m.velocity, float), omega(m.angular_velocity))])
-    if m.type == "piecewise":
-        segs = [Segment(g.duration, np.asarray(g.velocity, float), omega(g.angular_velocity)) for g in m.segments]
-        return Motion("piecewise", p0, R0, segs, repeat=m.repeat)
-    if m.type == "shake":
-        return Motion("shake", p0, R0, amplitude=np.asarray(m.amplitude, float), frequency=m.frequency, phase=m.phase)
-    return Motion("waypoints", p0, R0, times=np.asarray(m.times, float), positions=np.asarray(m.positions, float))
-
-
 def build_system(scene: Scene, requires_grad: bool = False, steps: int | None = None) -> CoupledSystem:
     """The coupled system of ``scene``; ``requires_grad`` builds gradient buffers and fixes K."""
     from cosim.runtime import ensure_taichi
@@ -107,7 +85,8 @@ def build_system(scene: Scene, requires_grad: bool = False, steps: int | None = 
     from cosim.engines.mpm import MPMConfig, MPMEngine
 
     steps = steps or scene.steps
-    bodies, affine = build_bodies(scene, preflight(scene))
+    start = check_start(scene)  # every check before the first step, also `cosim validate`'s
+    bodies, affine = build_bodies(scene, start.bodies)
     stepping = build_stepping(scene, bodies, requires_grad, steps)
     cfg = MPMConfig(
         dim=scene.dim,
@@ -123,15 +102,10 @@ def build_system(scene: Scene, requires_grad: bool = False, steps: int | None = 
     mpm = MPMEngine(cfg, bodies)
     mpm.set_state({**mpm.state(), "C": affine})  # a ParticleBody carries x, v and F; C enters by the contract
     controls = build_controls(scene, mpm.body_slices(), mpm.state()["x"])
-    parts = build_manipulators(scene, mpm, stepping)
-    rigid = None
-    if any(e not in parts.cloths for e in parts.engines):  # rigid engines (a cloth alone needs no rigid view)
-        from cosim.couplers.rigid_view import RigidBodies
-
-        rigid = RigidBodies(
-            parts.names, parts.shapes, parts.grids, parts.kinematic, parts.dart_coupler, scene.dim, parts.rigid_sources
-        )
-        _check_start_outside_rigid(rigid, mpm.state()["x"], scene.dx)
+    parts = build_manipulators(scene, mpm, stepping, start)
+    rigid = start.rigid  # with rigid engines (a cloth alone needs no rigid view)
+    if rigid is not None:
+        rigid.sources = parts.rigid_sources
         for cloth_index, cloth in enumerate(parts.cloths):
             _attach_cloth_rigid_contact(scene, scene.cloth[cloth_index], cloth, rigid)
     domain = np.asarray(scene.cells) * scene.dx
@@ -165,11 +139,6 @@ class Manipulators:
     plans: dict = field(default_factory=dict)
     sources: list = field(default_factory=list)  # boundary sources, for the contact model
     rigid_sources: list = field(default_factory=list)  # the rigid ones (``RigidBoundaries``), in body order
-    names: list = field(default_factory=list)  # rigid bodies the MPM sees, in source order
-    shapes: list = field(default_factory=list)
-    grids: list = field(default_factory=list)
-    kinematic: object = None
-    dart_coupler: object = None
     cloths: list = field(default_factory=list)  # cloth engines
 
     def couple(self, mpm, coupler, grids: list, dim: int, slots: int, grad: bool) -> None:
@@ -181,82 +150,43 @@ class Manipulators:
         self.couplers.append(coupler)
         self.sources.append(source)
         self.rigid_sources.append(source)
-        self.grids += grids
 
 
-def build_manipulators(scene: Scene, mpm, stepping: Stepping) -> Manipulators:
-    """The engines, couplers and action plans of the scene's rigid bodies: the kinematic ones
-    (``rigid:``) first, then the coupled links of DART skeletons (``articulated:``), each
-    engine with its own boundary source, all under the scene's one contact model."""
+def build_manipulators(scene: Scene, mpm, stepping: Stepping, start: Start) -> Manipulators:
+    """The engines, couplers and action plans of the scene's rigid bodies and cloths, from what
+    ``check_start`` built: the kinematic ones (``rigid:``) first, then the cloths, then the DART
+    skeletons (``articulated:``), each engine with its own boundary source where the MPM sees it,
+    all under the scene's one contact model."""
     from cosim.couplers.contact import attach_contact
 
     out = Manipulators()
     slots = max(scene.time.max_substeps, stepping.grad_substeps)
-    if scene.rigid is not None and scene.rigid.bodies:
-        _add_kinematic(scene, mpm, out, slots, stepping.requires_grad)
-    for i in range(len(scene.cloth)):  # before DART: a cloth's reaction on DART links enters the same step
-        _add_cloth(scene, i, mpm, out)
-    if scene.articulated is not None:
-        _add_articulated(scene, mpm, out, slots, stepping.requires_grad)
+    grad = stepping.requires_grad
+    if start.kinematic is not None:
+        out.engines.append(start.kinematic)
+        out.couple(mpm, start.kinematic_coupler, start.kinematic_grids, scene.dim, slots, grad)
+    for i, cloth in enumerate(start.cloths):  # before DART: a cloth's reaction on DART links enters the same step
+        _add_cloth(scene, i, cloth, mpm, out)
+    if start.articulated is not None:
+        engine = start.articulated.engine
+        out.engines.append(engine)
+        if start.dart_plan is not None:
+            out.plans[engine.name] = start.dart_plan
+        if start.dart_coupler is not None:
+            out.couple(mpm, start.dart_coupler, start.articulated.grids, scene.dim, slots, grad)
     if out.sources:  # with nothing the MPM sees, no contact hook
         attach_contact(mpm, out.sources, scene.contact)
     return out
 
 
-def _add_kinematic(scene: Scene, mpm, out: Manipulators, slots: int, grad: bool) -> None:
-    """Prescribed motions (``rigid:``) as a kinematic engine and its coupler."""
-    from cosim.couplers.mpm_kinematic import MPMKinematicCoupler
-    from cosim.couplers.sdf import shape_sdf
-    from cosim.engines.kinematic import KinematicEngine
-
-    specs = scene.rigid.bodies
-    grids = [
-        shape_sdf(
-            spec.shape,
-            scene.dim,
-            spec.sdf_spacing or 0.5 * scene.dx,
-            3 * scene.dx,
-            scene.source_dir,
-            f"rigid.bodies[{i}].shape",
-        )
-        for i, spec in enumerate(specs)
-    ]
-    motions = [build_motion(spec, scene.dim) for spec in specs]
-    out.kinematic = KinematicEngine(motions, [spec.name for spec in specs], scene.time.frame_dt)
-    out.engines.append(out.kinematic)
-    out.couple(mpm, MPMKinematicCoupler(out.kinematic), grids, scene.dim, slots, grad)
-    out.names += [spec.name for spec in specs]
-    out.shapes += [spec.shape for spec in specs]
-
-
-def _add_articulated(scene: Scene, mpm, out: Manipulators, slots: int, grad: bool) -> None:
-    """DART skeletons (``articulated:``): the engine, its action plan and, for the links the MPM
-    sees, the coupler (a skeleton the MPM never sees needs none)."""
-    from cosim.couplers.mpm_rigid import MPMRigidCoupler
-    from cosim.scene.actions import action_plan
-    from cosim.scene.articulated import build_articulated, link_shapes
-
-    articulated = build_articulated(scene, scene.dx)
-    engine = articulated.engine
-    out.engines.append(engine)
-    if engine.action_size:
-        plan = action_plan(scene.articulated.actions, engine.action_size, articulated.n_segments, "articulated.actions")
-        out.plans[engine.name] = plan
-    if articulated.coupled:
-        out.dart_coupler = MPMRigidCoupler(engine, articulated.coupled, scene.dim)
-        out.couple(mpm, out.dart_coupler, articulated.grids, scene.dim, slots, grad)
-        out.names += articulated.names
-        out.shapes += link_shapes(scene, articulated.names)
-
-
-def _add_cloth(scene: Scene, index: int, mpm, out: Manipulators) -> None:
-    """A cloth (``cloth[index]``): its engine, action plan, boundary source (with penetration
-    tracing unless ``contact.tracing`` is off) and coupler."""
+def _add_cloth(scene: Scene, index: int, cloth_start, mpm, out: Manipulators) -> None:
+    """A cloth (``cloth[index]``) from its ``ClothStart``: its engine, action plan, boundary source
+    (with penetration tracing unless ``contact.tracing`` is off) and coupler."""
     from cosim.couplers.cloth_boundary import ClothBoundary
     from cosim.couplers.mpm_cloth import MPMClothCoupler
     from cosim.scene.cloth import build_cloth
 
-    engine, plan = build_cloth(scene, index)
+    engine, plan = build_cloth(scene, index, cloth_start)
     out.engines.append(engine)
     out.cloths.append(engine)
     if plan is not None:
@@ -298,17 +228,6 @@ def _attach_cloth_rigid_contact(scene: Scene, spec, cloth, rigid) -> None:
             return {coupler.engine: full}
 
     cloth.attach_rigid_contact(planes, thickness, route, scene.contact.friction)
-
-
-def _check_start_outside_rigid(rigid, x: np.ndarray, dx: float) -> None:
-    """Material starting inside a rigid body would be expelled at once with a huge reaction
-    (a floating box started half under water was launched upwards: measured), so refuse it."""
-    for body, count in rigid.particles_inside(x, depth=0.5 * dx).items():
-        if count:
-            raise SceneError(
-                f"{count} particles start more than dx/2 inside rigid body '{body}'; move the body or the "
-                "material so that they do not overlap at t = 0"
-            )
 
 
 def _wave_speed(body, dim: int) -> float:

@@ -1,9 +1,10 @@
 """Scene checks that span several keys, each problem a line naming its key path.
 
 ``semantic_problems`` checks vector lengths against ``dim``, body names, files,
-3D-only shapes, the rigid bodies' motions and the ``articulated:`` section
-(skeletons, links, joints, controls); ``cosim.scene.loader`` calls it after
-the schema has validated every single key.
+3D-only shapes, the rigid bodies' motions, the ``articulated:`` section
+(skeletons, links, joints, controls), the cloths, the loss terms and the parameter
+names of ``gradient`` and ``optimize`` (``cosim.scene.params``); ``cosim.scene.loader``
+calls it after the schema has validated every single key.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import math
 from cosim.engines.shapes import RIGID_SHAPE_KINDS, required_keys
 from cosim.engines.urdf_tree import UrdfTree, read_urdf_tree
 from cosim.errors import SceneError
+from cosim.scene.params import params_problems
 from cosim.scene.schema import BoxShape, CylinderShape, MeshShape, Scene, VelocityFile
 from cosim.scene.shipped import resolve_asset
 from cosim.scene.velocity_field import expression_problem
@@ -70,28 +72,13 @@ def semantic_problems(scene: Scene) -> list[str]:
         if ctl.region is not None:
             vec(f"{base}.region.min", ctl.region.min)
             vec(f"{base}.region.max", ctl.region.max)
-    loss_bodies = names + [c.name for c in scene.cloth]
-    terms = scene.loss.all_terms()
-    for i, loss in enumerate(terms):
-        problems += loss_term_problems(loss, "loss" if not scene.loss.terms else f"loss.terms[{i}]", loss_bodies, scene)
+    problems += loss_problems(scene, names + [c.name for c in scene.cloth])
     if scene.rigid is not None:
         problems += rigid_problems(scene)
     if scene.articulated is not None:
         problems += articulated_problems(scene)
     problems += cloth_problems(scene)
-    controlled = any(c.controls for c in scene.cloth) or (
-        scene.articulated is not None and any(s.controls for s in scene.articulated.skeletons)
-    )
-    for section in ("gradient", "optimize"):
-        asks = "action" in getattr(scene, section).params and section in scene.model_fields_set
-        if asks and not controlled:
-            problems.append(
-                f"{section}.params: 'action' needs a skeleton with controls under articulated: or a cloth with controls"
-            )
-    if "impulse" in scene.gradient.params and not scene.controls and "gradient" in scene.model_fields_set:
-        problems.append("gradient.params: 'impulse' needs at least one entry under controls")
-    if "impulse" in scene.optimize.params and not scene.controls and "optimize" in scene.model_fields_set:
-        problems.append("optimize.params: 'impulse' needs at least one entry under controls")
+    problems += params_problems(scene)
     if scene.steps * scene.time.frame_dt > 1e4 or not math.isfinite(scene.time.frame_dt):
         problems.append("time.frame_dt: steps * frame_dt exceeds 10^4 s; is frame_dt in seconds?")
     return problems
@@ -355,6 +342,9 @@ def cloth_problems(scene: Scene) -> list[str]:
                     problems.append(f"{base}.{key}.points[{j}]: must have 3 entries, got {len(point)}")
         width = 3 * len(cloth.controls)
         acts = cloth.actions
+        if acts.reach is not None:
+            for key in ("center", "axis"):
+                problems += length_problems(f"{base}.actions.reach.{key}", getattr(acts.reach, key), 3, 3)
         for j, action in enumerate(acts.sequence + ([acts.initial] if acts.initial is not None else [])):
             if len(action) != width:
                 which = f"sequence[{j}]" if j < len(acts.sequence) else "initial"
@@ -362,6 +352,31 @@ def cloth_problems(scene: Scene) -> list[str]:
                     f"{base}.actions.{which}: {len(action)} entries, the {len(cloth.controls)} controls take "
                     f"{width} (a velocity [m/s] each)"
                 )
+    return problems
+
+
+# what each loss term type reads besides type, weight and running (``LossTermSpec``)
+LOSS_KEYS = {
+    "weighted_positions": {"body"},
+    "com_target": {"body", "target"},
+    "pose_target": {"body", "target", "rotation", "pivot"},
+    "chamfer": {"body", "points"},
+    "joint_target": {"skeleton", "joint", "target", "velocity", "components"},
+}
+
+
+def loss_problems(scene: Scene, loss_bodies: list[str]) -> list[str]:
+    """Each loss term's problems (``loss_term_problems``); with ``loss.terms``, the top-level term keys
+    are not read, so giving one is a problem too."""
+    spec = scene.loss
+    if not spec.terms:
+        return loss_term_problems(spec, "loss", loss_bodies, scene)
+    problems = [
+        f"loss.{name}: not read when loss.terms is given; move it into a term"
+        for name in sorted(spec.model_fields_set - {"terms"})
+    ]
+    for i, term in enumerate(spec.terms):
+        problems += loss_term_problems(term, f"loss.terms[{i}]", loss_bodies, scene)
     return problems
 
 
@@ -373,6 +388,9 @@ def loss_term_problems(loss, key: str, loss_bodies: list[str], scene) -> list[st
     def vec(path: str, value) -> None:
         problems.extend(length_problems(path, value, d, d))
 
+    uses = LOSS_KEYS[loss.type]
+    for name in sorted(loss.model_fields_set - uses - {"type", "weight", "running", "terms"}):
+        problems.append(f"{key}.{name}: a {loss.type} term does not use it (it reads {sorted(uses)}); remove it")
     if loss.body is not None and loss.body not in loss_bodies:
         problems.append(f"{key}.body: no body or cloth named '{loss.body}'; there are {loss_bodies}")
     needs_body = {

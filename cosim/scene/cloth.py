@@ -9,6 +9,7 @@ vertex twice, is a ``SceneError`` naming the key.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -45,7 +46,7 @@ def select_vertices(spec, rest: np.ndarray, key: str) -> np.ndarray:
 
 def cloth_selection(scene, index: int) -> tuple:
     """(mesh, pinned vertex indices, each control's vertex indices) of ``scene.cloth[index]``, in NumPy
-    (``preflight`` runs it: the mesh's faces and the selections are checked before anything is built)."""
+    (the mesh's faces and the selections, checked before anything is built)."""
     spec = scene.cloth[index]
     key = f"cloth[{index}]"
     mesh = build_mesh(spec.mesh, scene.source_dir, f"{key}.mesh")
@@ -61,34 +62,54 @@ def cloth_selection(scene, index: int) -> tuple:
     return mesh, fixed, controls
 
 
-def build_cloth(scene, index: int):
-    """(ClothEngine, ActionPlan or None) of ``scene.cloth[index]``."""
-    from cosim.engines.cloth import ClothEngine, ClothMaterial
+@dataclass
+class ClothStart:
+    """What a cloth is built from, checked in NumPy (``cloth_start``): its mesh, pinned and controlled
+    vertex indices, and the action plan of its controls (None without controls)."""
 
+    mesh: object  # ClothMesh
+    fixed: np.ndarray | list
+    controls: list[np.ndarray]
+    plan: object | None  # ActionPlan
+
+
+def cloth_start(scene, index: int) -> ClothStart:
+    """``scene.cloth[index]``'s mesh and selections (``cloth_selection``) and its action plan (``action_plan``,
+    with the ``reach`` projection), each refused with a ``SceneError`` naming its key; no cloth engine yet
+    (``cosim.scene.start`` runs it before anything is built)."""
     spec = scene.cloth[index]
     key = f"cloth[{index}]"
     mesh, fixed, controls = cloth_selection(scene, index)
+    plan = None
+    if controls:
+        hold = spec.actions.hold
+        plan = action_plan(spec.actions, 3 * len(controls), math.ceil(scene.steps / hold), f"{key}.actions")
+        if spec.actions.reach is not None:
+            duration = hold * scene.time.frame_dt
+            plan.project = _reach(spec.actions.reach, mesh, controls, duration, plan.sequence, f"{key}.actions")
+    return ClothStart(mesh, fixed, controls, plan)
+
+
+def build_cloth(scene, index: int, start: ClothStart | None = None):
+    """(ClothEngine, ActionPlan or None) of ``scene.cloth[index]``, from its ``cloth_start`` (made here if not given)."""
+    from cosim.engines.cloth import ClothEngine, ClothMaterial
+
+    spec = scene.cloth[index]
+    start = start or cloth_start(scene, index)
     m = spec.material
     material = ClothMaterial(k_stretch=m.stretch, k_bend=m.bend, c_mass=m.damping, density=m.density)
     engine = ClothEngine(
-        mesh,
+        start.mesh,
         material,
-        fixed=fixed,
-        controls=controls,
+        fixed=start.fixed,
+        controls=start.controls,
         gravity=scene.gravity,
         frame_dt=scene.time.frame_dt,
         name=spec.name,
         rtol=spec.tolerance,
         max_iterations=spec.max_iterations,
     )
-    plan = None
-    if controls:
-        hold = spec.actions.hold
-        plan = action_plan(spec.actions, engine.action_size, math.ceil(scene.steps / hold), f"{key}.actions")
-        if spec.actions.reach is not None:
-            duration = hold * scene.time.frame_dt
-            plan.project = _reach(spec.actions.reach, mesh, controls, duration, plan.sequence, f"{key}.actions")
-    return engine, plan
+    return engine, start.plan
 
 
 def _reach(spec, mesh, controls, duration: float, sequence: np.ndarray, key: str) -> ReachProjection:

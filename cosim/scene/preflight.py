@@ -1,11 +1,11 @@
-"""Every check `cosim run` makes before its first step, in NumPy (no Taichi, no DART).
+"""The start-of-run checks of the soft bodies, in NumPy (no Taichi, no DART).
 
-``cosim validate`` runs it, and ``build_system`` runs the same function before building anything,
-so whatever `run` refuses at the start, `validate` refuses with the same message: the grid fits in
-memory, every body samples into the grid, its initial velocity (expressions or a file) is finite
-and fits its particles, control regions select particles, a fixed substep count is below the
-explicit stability bound and an automatic one within ``time.max_substeps``, a liquid started
-hydrostatic is stiff enough to carry its own weight, and a loss's target points can be read.
+``cosim.scene.start.check_start`` runs them first (then the cloths', rigid bodies' and skeletons'),
+for ``cosim validate`` and ``build_system`` alike: the grid fits in memory, every body samples
+into the grid, its initial velocity (expressions or a file) is finite and fits its particles,
+control regions select particles, a fixed substep count is below the explicit stability bound
+and an automatic one within ``time.max_substeps``, a liquid started hydrostatic is stiff enough
+to carry its own weight, and a loss's target points can be read.
 """
 
 from __future__ import annotations
@@ -39,8 +39,8 @@ class BodyStart:
 
 
 def preflight(scene: Scene) -> list[BodyStart]:
-    """Run the start-of-run checks; return every body's start, which ``build_system`` builds from (so a
-    velocity file is read, and a point cloud triangulated, once)."""
+    """Run the soft bodies' start checks; return every body's start, which ``build_system`` builds from
+    (so a velocity file is read, and a point cloud triangulated, once)."""
     check_grid_memory(scene)
     positions = body_positions(scene)
     check_control_regions(scene, positions)
@@ -48,11 +48,6 @@ def preflight(scene: Scene) -> list[BodyStart]:
     check_substeps(scene, [b.velocities for b in bodies])
     check_hydrostatic(scene, positions)
     check_loss_targets(scene)
-    if scene.cloth:  # each cloth's mesh (no degenerate or sliver faces) and selections
-        from cosim.scene.cloth import cloth_selection  # only cloth scenes load the cloth modules
-
-        for index in range(len(scene.cloth)):
-            cloth_selection(scene, index)
     return bodies
 
 
