@@ -81,8 +81,10 @@ def ensure_taichi(arch: str = "cpu", precision: str = "float64", gradients: bool
     import taichi as ti
 
     from cosim import kernel_cache
+    from cosim.engines import field_pool
 
     if _current is not None:
+        field_pool.clear()  # ti.reset frees every field
         kernel_cache.finish()  # ti.reset, Taichi writing its kernel cache in a window of its own
         _current = None
     arch_obj = {"cpu": ti.cpu, "cuda": ti.cuda, "gpu": ti.gpu}[arch]
@@ -100,6 +102,7 @@ def ensure_taichi(arch: str = "cpu", precision: str = "float64", gradients: bool
     from cosim.engines.arch import CPU_ARCHES, running_arch
 
     if arch not in CPU_ARCHES and running_arch() in CPU_ARCHES:
+        field_pool.clear()
         ti.reset()
         _current = None
         raise InputError(

@@ -30,6 +30,7 @@ import taichi as ti
 
 from cosim.couplers.sdf_field import SDFField
 from cosim.couplers.sdf_grid import SDFGrid
+from cosim.engines import field_pool
 from cosim.engines.contract import BOUNDARY_KEYS, REACTION_KEYS
 from cosim.engines.data_oriented import data_oriented
 
@@ -52,12 +53,12 @@ class RigidBoundaries:
         self.sdfs = [SDFField(g) for g in sdfs]
         shape = (max_substeps, self.n)
         grad = requires_grad
-        self.pos = ti.Vector.field(dim, float, shape=shape, needs_grad=grad)
-        self.rot = ti.Matrix.field(dim, dim, float, shape=shape, needs_grad=grad)
-        self.vel = ti.Vector.field(dim, float, shape=shape, needs_grad=grad)
-        self.omega = ti.Vector.field(self.wdim, float, shape=shape, needs_grad=grad)
-        self.impulse = ti.Vector.field(dim, float, shape=shape, needs_grad=grad)
-        self.angular_impulse = ti.Vector.field(self.wdim, float, shape=shape, needs_grad=grad)
+        self.pos = field_pool.vector(self, dim, float, shape=shape, needs_grad=grad)
+        self.rot = field_pool.matrix(self, dim, dim, float, shape=shape, needs_grad=grad)
+        self.vel = field_pool.vector(self, dim, float, shape=shape, needs_grad=grad)
+        self.omega = field_pool.vector(self, self.wdim, float, shape=shape, needs_grad=grad)
+        self.impulse = field_pool.vector(self, dim, float, shape=shape, needs_grad=grad)
+        self.angular_impulse = field_pool.vector(self, self.wdim, float, shape=shape, needs_grad=grad)
         self.real = np.float64 if self.pos.dtype == ti.f64 else np.float32
 
     # ------------------------------------------------------------------ what a contact model asks

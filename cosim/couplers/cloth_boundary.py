@@ -49,6 +49,7 @@ import taichi as ti
 from cosim.couplers.cloth_mesh_query import INTERIOR, MeshQuery, closest_point_on_triangle
 from cosim.couplers.cloth_topology import build_topology
 from cosim.couplers.cloth_tracing import CANDIDATES, PenetrationTracer
+from cosim.engines import field_pool
 from cosim.engines.data_oriented import data_oriented
 
 FAR = 1e30  # [m] the distance reported where no face is within the band
@@ -100,9 +101,9 @@ class ClothBoundary:
         self.tracer = PenetrationTracer(engine, self.query, self.topology, self.slots, enabled=trace)
         self.tracer.neighbour_radius = self.radius
         V = len(verts)
-        self.vel = ti.Vector.field(3, float, shape=V, needs_grad=grad)
-        self.impulse = ti.Vector.field(3, float, shape=V, needs_grad=grad)
-        self.node_face = ti.field(ti.i32, shape=engine.nodes)
+        self.vel = field_pool.vector(self, 3, float, shape=V, needs_grad=grad)
+        self.impulse = field_pool.vector(self, 3, float, shape=V, needs_grad=grad)
+        self.node_face = field_pool.scalar(self, ti.i32, shape=engine.nodes)
         # whether a contact model asks about grid nodes (p = -1; the grid model sets it): only then is each
         # node's nearest face queried in ``write`` (a cost the particle and forecast models need not pay)
         self.queries_nodes = False
@@ -110,10 +111,10 @@ class ClothBoundary:
         self.blend_width = BLEND * self.band
         self.tracer.cutoff = CUTOFF * self.blend_width
         S, N = self.slots, engine.capacity
-        self.frame_d = ti.field(float, shape=(S, N), needs_grad=grad)
-        self.frame_n = ti.Vector.field(3, float, shape=(S, N), needs_grad=grad)
-        self.frame_x = ti.Vector.field(3, float, shape=(S, N), needs_grad=grad)
-        self.frame_w = ti.Vector.field(3, float, shape=(S, N, CANDIDATES), needs_grad=grad)
+        self.frame_d = field_pool.scalar(self, float, shape=(S, N), needs_grad=grad)
+        self.frame_n = field_pool.vector(self, 3, float, shape=(S, N), needs_grad=grad)
+        self.frame_x = field_pool.vector(self, 3, float, shape=(S, N), needs_grad=grad)
+        self.frame_w = field_pool.vector(self, 3, float, shape=(S, N, CANDIDATES), needs_grad=grad)
         self.real = self.query.real
 
     def set_tracing(self, enabled: bool) -> None:

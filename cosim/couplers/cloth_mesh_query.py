@@ -19,6 +19,7 @@ each region (contact models call it with a fixed face inside differentiated kern
 import numpy as np
 import taichi as ti
 
+from cosim.engines import field_pool
 from cosim.engines.data_oriented import data_oriented
 
 PRIMES = (73856093, 19349663, 83492791)  # spatial-hash multipliers (Teschner et al. 2003)
@@ -106,12 +107,12 @@ class MeshQuery:
         self.band = float(band)
         self.table = 1 << int(np.ceil(np.log2(max(16, 16 * F))))
         self.faces_np = np.ascontiguousarray(faces, dtype=np.int32)
-        self.verts = ti.Vector.field(3, float, shape=n_verts, needs_grad=requires_grad)
-        self.faces = ti.Vector.field(3, ti.i32, shape=F)
+        self.verts = field_pool.vector(self, 3, float, shape=n_verts, needs_grad=requires_grad)
+        self.faces = field_pool.vector(self, 3, ti.i32, shape=F)
         self.faces.from_numpy(self.faces_np)
-        self.start = ti.field(ti.i32, shape=self.table + 1)
-        self.entries = ti.field(ti.i32, shape=8 * F)
-        self.inv_h = ti.field(float, shape=())
+        self.start = field_pool.scalar(self, ti.i32, shape=self.table + 1)
+        self.entries = field_pool.scalar(self, ti.i32, shape=8 * F)
+        self.inv_h = field_pool.scalar(self, float, shape=())
         self.real = np.float64 if self.verts.dtype == ti.f64 else np.float32
 
     def update(self, verts: np.ndarray) -> None:

@@ -46,6 +46,7 @@ import taichi as ti
 
 from cosim.couplers.cloth_mesh_query import CORNER, EDGE, MeshQuery, closest_point_on_triangle
 from cosim.couplers.cloth_topology import ClothTopology
+from cosim.engines import field_pool
 from cosim.engines.data_oriented import data_oriented
 from cosim.errors import SimulationError
 
@@ -64,38 +65,44 @@ class PenetrationTracer:
     def __init__(self, engine, query: MeshQuery, topology: ClothTopology, slots: int, enabled: bool = True):
         self.engine = engine
         self.query = query
-        self.enabled = ti.field(ti.i32, shape=())  # 0: every particle stays legal (comparisons only)
+        self.enabled = field_pool.scalar(self, ti.i32, shape=())  # 0: every particle stays legal (comparisons only)
         self.enabled[None] = int(enabled)
         self.slots = slots
         F, N = query.n_faces, engine.capacity
         S, M = topology.star.shape[2], topology.max_neighbours
         self.S, self.M = S, M
-        self.edge_face = _int_field((F, 3), topology.edge_face)
-        self.edge_flag = _int_field((F, 3), topology.edge_flag)
-        self.vertex_boundary = _int_field((F, 3), topology.vertex_boundary)
-        self.star = _int_field((F, 3, S), topology.star)
-        self.star_flag = _int_field((F, 3, S), topology.star_flag)
-        self.neighbours = _int_field((F, M), topology.neighbours)
-        self.neighbour_flag = _int_field((F, M), topology.neighbour_flag)
+        self.edge_face = _int_field(self, (F, 3), topology.edge_face)
+        self.edge_flag = _int_field(self, (F, 3), topology.edge_flag)
+        self.vertex_boundary = _int_field(self, (F, 3), topology.vertex_boundary)
+        self.star = _int_field(self, (F, 3, S), topology.star)
+        self.star_flag = _int_field(self, (F, 3, S), topology.star_flag)
+        self.neighbours = _int_field(self, (F, M), topology.neighbours)
+        self.neighbour_flag = _int_field(self, (F, M), topology.neighbour_flag)
         # closest-point normals of the current mesh (for sides only: never differentiated)
-        self.face_normal = ti.Vector.field(3, float, shape=F)
-        self.corner_angle = ti.field(float, shape=(F, 3))
-        self.edge_normal = ti.Vector.field(3, float, shape=(F, 3))
-        self.vertex_normal = ti.Vector.field(3, float, shape=(F, 3))
+        self.face_normal = field_pool.vector(self, 3, float, shape=F)
+        self.corner_angle = field_pool.scalar(self, float, shape=(F, 3))
+        self.edge_normal = field_pool.vector(self, 3, float, shape=(F, 3))
+        self.vertex_normal = field_pool.vector(self, 3, float, shape=(F, 3))
         # the state (between observations) and its per-substep copies
-        self.face = ti.field(ti.i32, shape=N)
-        self.side = ti.field(ti.i32, shape=N)
-        self.inside = ti.field(ti.i32, shape=N)
-        self.last_x = ti.Vector.field(3, float, shape=N)
-        self.face_s = ti.field(ti.i32, shape=(slots, N))
-        self.side_s = ti.field(ti.i32, shape=(slots, N))
-        self.inside_s = ti.field(ti.i32, shape=(slots, N))
+        self.face = field_pool.scalar(self, ti.i32, shape=N)
+        self.side = field_pool.scalar(self, ti.i32, shape=N)
+        self.inside = field_pool.scalar(self, ti.i32, shape=N)
+        self.last_x = field_pool.vector(self, 3, float, shape=N)
+        self.face_s = field_pool.scalar(self, ti.i32, shape=(slots, N))
+        self.side_s = field_pool.scalar(self, ti.i32, shape=(slots, N))
+        self.inside_s = field_pool.scalar(self, ti.i32, shape=(slots, N))
         self.cutoff = 0.0  # [m] blend candidates lie within it of the nearest distance (set by the owner)
-        self.candidate_s = ti.field(ti.i32, shape=(slots, N, CANDIDATES))  # face ids, -1 unused
-        self.candidate_flag_s = ti.field(ti.i32, shape=(slots, N, CANDIDATES))  # winding relative to face_s
-        self.overflow = ti.field(ti.i32, shape=())  # candidates beyond CANDIDATES met so far (diagnostics)
-        self.box = ti.Vector.field(3, float, shape=2)  # the mesh's bounding box grown by the band
-        self.errors = ti.field(ti.i32, shape=4)  # lost count, first lost particle, fast count, first fast particle
+        self.candidate_s = field_pool.scalar(self, ti.i32, shape=(slots, N, CANDIDATES))  # face ids, -1 unused
+        self.candidate_flag_s = field_pool.scalar(
+            self, ti.i32, shape=(slots, N, CANDIDATES)
+        )  # winding relative to face_s
+        self.overflow = field_pool.scalar(
+            self, ti.i32, shape=()
+        )  # candidates beyond CANDIDATES met so far (diagnostics)
+        self.box = field_pool.vector(self, 3, float, shape=2)  # the mesh's bounding box grown by the band
+        self.errors = field_pool.scalar(
+            self, ti.i32, shape=4
+        )  # lost count, first lost particle, fast count, first fast particle
         self.real = query.real
 
     # ------------------------------------------------------------ host
@@ -312,7 +319,7 @@ class PenetrationTracer:
             self.candidate_flag_s[slot, p, k] = flags[k]
 
 
-def _int_field(shape: tuple, values: np.ndarray):
-    fld = ti.field(ti.i32, shape=shape)
+def _int_field(owner, shape: tuple, values: np.ndarray):
+    fld = field_pool.scalar(owner, ti.i32, shape=shape)
     fld.from_numpy(np.ascontiguousarray(values, dtype=np.int32))
     return fld

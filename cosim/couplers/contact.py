@@ -29,6 +29,7 @@ from cosim.couplers.contact_rules import (
     speculative_bc,
     surface_offset,
 )
+from cosim.engines import field_pool
 from cosim.engines.data_oriented import data_oriented
 
 
@@ -53,7 +54,7 @@ class ParticlePenalty:
         self.accel_per_depth = self.stiffness * STANDARD_GRAVITY / engine.dx  # [1/s^2]
         self.friction = float(friction)
         grad = engine.cfg.requires_grad
-        self.output = ti.Vector.field(engine.dim, float, shape=engine.affine.shape, needs_grad=grad)
+        self.output = field_pool.vector(self, engine.dim, float, shape=engine.affine.shape, needs_grad=grad)
         engine.attach_particle_hook(self)
 
     @ti.kernel
@@ -156,10 +157,10 @@ class ForecastContact:
         grad = engine.cfg.requires_grad
         d = engine.dim
         per_particle = engine.affine.shape  # (grid copies, particles)
-        self.v_init = ti.Vector.field(d, float, shape=per_particle, needs_grad=grad)
-        self.residual = ti.Vector.field(d, float, shape=per_particle, needs_grad=grad)
-        self.constrained = ti.field(ti.i32, shape=per_particle)
-        self.correction = ti.Vector.field(d, float, shape=engine.grid_v.shape, needs_grad=grad)
+        self.v_init = field_pool.vector(self, d, float, shape=per_particle, needs_grad=grad)
+        self.residual = field_pool.vector(self, d, float, shape=per_particle, needs_grad=grad)
+        self.constrained = field_pool.scalar(self, ti.i32, shape=per_particle)
+        self.correction = field_pool.vector(self, d, float, shape=engine.grid_v.shape, needs_grad=grad)
         self.scratch = [self.correction]  # zeroed by the engine with the grid each substep
         self.grid_adjoints = [self.correction]  # their adjoints too, in each substep's adjoint
         # benchmarks: the objective (before, after) the gradient step, per substep (a host sync each)

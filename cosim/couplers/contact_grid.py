@@ -17,6 +17,7 @@ from cosim.couplers.contact_rules import (
     soft_ramp,
     speculative_bc,
 )
+from cosim.engines import field_pool
 from cosim.engines.data_oriented import data_oriented
 
 
@@ -59,12 +60,12 @@ class GridContact:
         self.support = support
         self.band = 0.5 * engine.dx if band is None else float(band)
         grad = engine.cfg.requires_grad
-        self.output = ti.Vector.field(engine.dim, float, shape=engine.grid_v.shape, needs_grad=grad)
+        self.output = field_pool.vector(self, engine.dim, float, shape=engine.grid_v.shape, needs_grad=grad)
         self.liquid = None  # per node: (liquid volume fraction phi, liquid mass) [-, kg]
         self.solid = None  # per node next to liquid: the share of its cell inside the bodies [-]
         if self._reads_liquid():
-            self.liquid = ti.Vector.field(2, float, shape=engine.grid_v.shape, needs_grad=grad)
-            self.solid = ti.field(float, shape=engine.grid_v.shape, needs_grad=grad)
+            self.liquid = field_pool.vector(self, 2, float, shape=engine.grid_v.shape, needs_grad=grad)
+            self.solid = field_pool.scalar(self, float, shape=engine.grid_v.shape, needs_grad=grad)
             self.scratch = [self.liquid, self.solid]  # zeroed by the engine with the grid each substep
             # the solid share is read at a node's neighbours and written next to liquid (``_occupy``,
             # ``_liquid_reach``): one node beyond the nodes the particles reach

@@ -5,6 +5,7 @@ import numpy as np
 import taichi as ti
 
 from cosim.couplers.sdf_grid import SDFGrid
+from cosim.engines import field_pool
 from cosim.engines.data_oriented import data_oriented
 
 
@@ -17,8 +18,8 @@ class SDFField:
         self.shape = tuple(grid.values.shape)
         self.origin = ti.Vector([float(o) for o in grid.origin])
         self.spacing = float(grid.spacing)
-        self.values = ti.field(float, shape=self.shape)
-        self.grads = ti.Vector.field(self.dim, float, shape=self.shape)
+        self.values = field_pool.scalar(self, float, shape=self.shape)
+        self.grads = field_pool.vector(self, self.dim, float, shape=self.shape)
         real = np.float64 if self.values.dtype == ti.f64 else np.float32
         self.values.from_numpy(grid.values.astype(real))
         self.grads.from_numpy(grid.gradients().astype(real))

@@ -15,6 +15,7 @@ numpy took about 10% of a pour_water step (cProfile).
 import numpy as np
 import taichi as ti
 
+from cosim.engines import field_pool
 from cosim.engines.data_oriented import data_oriented
 
 MAX_PATH_SAMPLES = 64  # points at most along one particle's path through a body over a step
@@ -33,9 +34,9 @@ class TunnelWatch:
         self.n = len(self.sdfs)
         self.spacing = float(spacing)
         d = engine.dim
-        self.x0 = ti.Vector.field(d, float, shape=engine.capacity)
-        self.last_normal = ti.Vector.field(d, float, shape=(engine.capacity, self.n))
-        self.crossed = ti.field(ti.i32, shape=(len(engine.bodies), self.n))  # per soft body, rigid body
+        self.x0 = field_pool.vector(self, d, float, shape=engine.capacity)
+        self.last_normal = field_pool.vector(self, d, float, shape=(engine.capacity, self.n))
+        self.crossed = field_pool.scalar(self, ti.i32, shape=(len(engine.bodies), self.n))  # per soft body, rigid body
         self._kept = -1  # the engine's ``state_version`` whose positions x0 holds
 
     def reset(self) -> None:

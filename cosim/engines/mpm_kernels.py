@@ -26,6 +26,7 @@ One substep, split into the phases a coupler drives (docs/architecture.md):
 import numpy as np
 import taichi as ti
 
+from cosim.engines import field_pool
 from cosim.engines.arch import current_choices
 from cosim.engines.data_oriented import data_oriented
 from cosim.engines.materials import MATERIALS
@@ -49,7 +50,7 @@ class MPMKernels(StencilFunctions, SlotIO):
         # particle fields hold ``capacity`` particles, kernels loop over ``count``: kernels compiled for
         # one particle count serve every count of its bucket (``particle_capacity``)
         self.capacity = n = particle_capacity(self.n_particles)
-        self.count = ti.field(ti.i32, shape=())
+        self.count = field_pool.scalar(self, ti.i32, shape=())
         self.dx = float(config.dx)
         self.inv_dx = 1.0 / self.dx
         starts = np.cumsum([0] + [b.n for b in bodies])
@@ -59,20 +60,20 @@ class MPMKernels(StencilFunctions, SlotIO):
         _check_gradient_build(grad)
         self.n_slots = config.grad_substeps + 1 if grad else 4
 
-        self.x = ti.Vector.field(d, float, shape=(self.n_slots, n), needs_grad=grad)
-        self.v = ti.Vector.field(d, float, shape=(self.n_slots, n), needs_grad=grad)
-        self.C = ti.Matrix.field(d, d, float, shape=(self.n_slots, n), needs_grad=grad)
-        self.F = ti.Matrix.field(d, d, float, shape=(self.n_slots, n), needs_grad=grad)
+        self.x = field_pool.vector(self, d, float, shape=(self.n_slots, n), needs_grad=grad)
+        self.v = field_pool.vector(self, d, float, shape=(self.n_slots, n), needs_grad=grad)
+        self.C = field_pool.matrix(self, d, d, float, shape=(self.n_slots, n), needs_grad=grad)
+        self.F = field_pool.matrix(self, d, d, float, shape=(self.n_slots, n), needs_grad=grad)
         nb = len(bodies)
-        self.E = ti.field(float, shape=nb, needs_grad=grad)
-        self.nu = ti.field(float, shape=nb, needs_grad=grad)
-        self.yield_stress = ti.field(float, shape=nb)
-        self.viscosity = ti.field(float, shape=nb)
-        self.p_mass = ti.field(float, shape=nb)
-        self.p_vol = ti.field(float, shape=nb)
-        self.p_radius = ti.field(float, shape=nb)  # [m] half the lattice spacing
-        self.p_liquid = ti.field(ti.i32, shape=nb)  # 1 for a liquid body
-        self.body_id = ti.field(ti.i32, shape=n)  # which body each particle belongs to
+        self.E = field_pool.scalar(self, float, shape=nb, needs_grad=grad)
+        self.nu = field_pool.scalar(self, float, shape=nb, needs_grad=grad)
+        self.yield_stress = field_pool.scalar(self, float, shape=nb)
+        self.viscosity = field_pool.scalar(self, float, shape=nb)
+        self.p_mass = field_pool.scalar(self, float, shape=nb)
+        self.p_vol = field_pool.scalar(self, float, shape=nb)
+        self.p_radius = field_pool.scalar(self, float, shape=nb)  # [m] half the lattice spacing
+        self.p_liquid = field_pool.scalar(self, ti.i32, shape=nb)  # 1 for a liquid body
+        self.body_id = field_pool.scalar(self, ti.i32, shape=n)  # which body each particle belongs to
         # Grid and per-particle stress scratch: one copy per substep with
         # gradients (the adjoint reads them back instead of recomputing P2G),
         # one copy otherwise. g below is that copy's index.
@@ -81,20 +82,20 @@ class MPMKernels(StencilFunctions, SlotIO):
         self.n_grids = config.grad_substeps if grad else 1
         # per node: momentum [kg m/s] in components 0..d-1, mass [kg] in component d, side by side
         # so that P2G adds both with one vector add to one place (``node_momentum``, ``node_mass``)
-        self.grid_mm = ti.Vector.field(d + 1, float, shape=(self.n_grids, *self.nodes), needs_grad=grad)
-        self.grid_v = ti.Vector.field(d, float, shape=(self.n_grids, *self.nodes), needs_grad=grad)
+        self.grid_mm = field_pool.vector(self, d + 1, float, shape=(self.n_grids, *self.nodes), needs_grad=grad)
+        self.grid_v = field_pool.vector(self, d, float, shape=(self.n_grids, *self.nodes), needs_grad=grad)
         self.gravity = ti.Vector([float(g) for g in config.gravity])
-        self.affine = ti.Matrix.field(d, d, float, shape=(self.n_grids, n), needs_grad=grad)
+        self.affine = field_pool.matrix(self, d, d, float, shape=(self.n_grids, n), needs_grad=grad)
         # the nodes the P2G of each grid copy's substep touched: [active_lo, active_hi) per axis (``_p2g``)
-        self.active_lo = ti.Vector.field(d, ti.i32, shape=self.n_grids)
-        self.active_hi = ti.Vector.field(d, ti.i32, shape=self.n_grids)
+        self.active_lo = field_pool.vector(self, d, ti.i32, shape=self.n_grids)
+        self.active_hi = field_pool.vector(self, d, ti.i32, shape=self.n_grids)
         # the adjoint of the grid velocities one G2P read (gradients only; see ``mpm_adjoint``)
-        self.gathered_grad = ti.Vector.field(d, float, shape=self.nodes) if grad else None
+        self.gathered_grad = field_pool.vector(self, d, float, shape=self.nodes) if grad else None
         # one adjoint kernel's sum of dL/dmu, dL/dlam over a body's particles (``mpm_adjoint._lame_grad``)
-        self.lame_bar = ti.Vector.field(2, float, shape=()) if grad else None
+        self.lame_bar = field_pool.vector(self, 2, float, shape=()) if grad else None
         self.control = None
         if config.has_controls:
-            self.control = ti.Vector.field(d, float, shape=n, needs_grad=grad)
+            self.control = field_pool.vector(self, d, float, shape=n, needs_grad=grad)
 
         self.real = np.float64 if self.x.dtype == ti.f64 else np.float32
         self.E.from_numpy(self._real([b.E for b in bodies]))

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 import taichi as ti
 
+from cosim.engines import field_pool
 from cosim.engines.data_oriented import data_oriented
 
 KEYS = ("x", "v", "C", "F")  # the particle state's keys, as the survey counts them
@@ -65,7 +66,7 @@ class ParticleWatch:
     def __init__(self, engine):
         self.engine = engine
         self.n_bodies = len(engine.bodies)
-        self.first = ti.field(ti.i32, shape=self.n_bodies)  # per body: first bad substep, NONE if none
+        self.first = field_pool.scalar(self, ti.i32, shape=self.n_bodies)  # per body: first bad substep, NONE if none
         self.first.fill(NONE)
         self.low = engine.dx  # [m] inside the grid: at least a cell from each face
         self.high = ti.Vector([c * engine.dx - engine.dx for c in engine.cfg.cells])
