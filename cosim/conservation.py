@@ -15,9 +15,8 @@ After every macro step of a rollout that runs from step 0, E(t) > E(0) + W(t) + 
 stops the run with a ``SimulationError`` naming the body whose energy grew most; scale = E(0) above
 its floor (all mass at the domain's lowest point) plus sum |W|. Replays from a checkpoint (set_state to
 step k > 0) are steps already checked and are skipped. The check reads one small per-body table summed on
-the device: one kernel launch (~0.05 ms here) for a small scene (2D 676 particles of a 3 ms step, 3D 833
-of a 1.5 ms step), 0.3-0.4 ms for 3D 4k particles (an 11 ms step), 0.7-0.8 ms for 33k (a 10-substep 55 ms
-step): the polar decompositions of the strain energy (measured).
+the device: one kernel launch for a small scene; for a large one the strain energy's polar decompositions,
+a few percent of a step.
 
 The margin, 10% of the scale: what a stable run can show above E(0) + W is bounded, an instability is not.
 - MLS-MPM's explicit (symplectic Euler) update keeps a nearby energy exactly; the measured one oscillates
@@ -32,12 +31,9 @@ The margin, 10% of the scale: what a stable run can show above E(0) + W is bound
 Together under 10% of a body's kinetic and elastic energy at 10 cells and cfl 0.3, and the scale holds
 that energy and the height above the floor besides.
 An instability multiplies its energy at every substep, so it passes any fixed margin within a step or two
-of showing: the margin sets the false alarms, not the detection. Measured with the check every step and
-no stop, every shipped scene over its full length (2026-12-04; not pour_franka_meshes, which needs pybullet):
-the largest excess 7e-7 of the scale (pull_door), most never above step 0's gravity loss (-1e-5), but
-pour_thin_glass +0.050 at step 0: the forecast contact kicks the water resting within a cell of the cup's
-floor as the cup starts (0.54 J of kinetic and strain energy against 0.05 J of work; grid contact: -6e-4,
-particle: +0.016); it decays to +0.002 by step 11. The margin keeps twice that.
+of showing: the margin sets the false alarms, not the detection. The shipped scenes stay far below it,
+except where material starts within a cell of a rigid body: the forecast contact pushes it out in the
+first step (pour_thin_glass's water on the cup's floor reaches half the margin, then decays).
 """
 
 from __future__ import annotations
@@ -50,7 +46,7 @@ from cosim.errors import SimulationError
 
 MARGIN = 0.1  # of the scale: the energy a stable run may show above its start plus the work (module docstring)
 # a breach in step 0 is most often the start: material within a cell of a rigid body, or inside it, is pushed out
-# (the forecast contact kicked water started 0.6 cells inside a ring's wall to 46% of the scale; measured)
+# (water started 0.6 cells inside a ring's wall: the forecast contact's push-out alone is several margins)
 FIRST_STEP = (
     "; in a first step it is more often the start: material inside or within a cell of a rigid body is pushed out "
     "(the forecast contact most): start it clear of the bodies"

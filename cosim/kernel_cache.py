@@ -6,8 +6,8 @@ How Taichi 1.7.4 locks its cache (``taichi/util/lock.h``, ``kernel_compilation_m
 times 50 ms apart (0.2 s), then warns "Lock ... failed" and goes on without the cache. Each Taichi
 program takes it three times: to load the cache's index at its first kernel compile (on failure every
 kernel compiles again), and at ``ti.reset`` or exit to trim the cache and to write the kernels it
-compiled (on failure they are lost). Writing a scene's kernels held it ~0.1 s, a test file's 136
-kernels 0.45 s (measured). A process killed inside a window leaves the file for good: three warnings
+compiled (on failure they are lost). Writing many kernels holds it longer than the others' 0.2 s of
+retries. A process killed inside a window leaves the file for good: three warnings
 and a cold start on every later run. A kernel file the kill cut short is never rewritten either (Taichi
 writes only files that do not exist), so that kernel compiles on every run. Taichi's advice, ``ti cache
 clean``, deletes the whole cache.
@@ -25,8 +25,8 @@ cosim takes each window (``window``) under an flock of its own, ``cosim.lock`` i
 
 ``start`` (after ``ti.init``) loads the index in a window and registers ``finish`` (``ti.reset`` in a
 window) for exit, so Taichi writes the cache while Python still handles signals: a Ctrl-C then waits for
-the write, where during the interpreter's teardown it killed it (measured: lock left, 1 of 151 kernel
-files written). A process killed outright (SIGKILL, or SIGTERM, which skips exit hooks) writes nothing
+the write, where during the interpreter's teardown it killed it (the lock left, most kernel files
+unwritten). A process killed outright (SIGKILL, or SIGTERM, which skips exit hooks) writes nothing
 if it is between windows, or leaves the lock the next start clears.
 """
 
