@@ -7,8 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cosim.adjoint.gradcheck import ULP, check_gradients, relative_error
-from cosim.cli import report_gradcheck
+from cosim.adjoint.gradcheck import ULP, check_gradients, relative_error, report_gradcheck
 from cosim.errors import GradientCheckError
 
 W = np.random.default_rng(0).standard_normal(6)

@@ -112,3 +112,40 @@ def check_gradients(
                 noise = max(NOISE_FACTOR * abs(fd - half), noise)
             results.append(DirectionCheck(name, k, ad, fd, relative_error(ad, fd, noise), noise, eps))
     return results
+
+
+def report_gradcheck(results: list, tol: float, steps: int) -> int:
+    """Print each direction (adjoint, difference, the difference's noise floor, relative error, and a
+    note where the disagreement is within that floor) and the verdict; a ``GradientCheckError`` on a
+    disagreement beyond ``tol`` that the difference resolves."""
+    from cosim.errors import GradientCheckError
+
+    print(f"{'param':>8} {'dir':>4} {'adjoint':>16} {'finite diff':>16} {'noise floor':>11} {'rel error':>10}")
+    for r in results:
+        note = "  within the noise floor: unresolved, passes" if r.verdict(tol) == "noise" else ""
+        print(
+            f"{r.param:>8} {r.direction:>4} {r.adjoint:>16.9e} {r.finite_difference:>16.9e} {r.noise_floor:>11.2e} "
+            f"{r.relative_error:>10.2e}{note}"
+        )
+    print(
+        "rel error = |adjoint - finite diff| / max(|adjoint|, |finite diff|, noise floor); noise floor = "
+        "one ulp of the loss over h, or where that fails the tolerance 2 |finite diff at h - at h/2|"
+    )
+    if all(r.adjoint == 0 and r.finite_difference == 0 for r in results):
+        print(
+            f"warning: every gradient is zero over {steps} steps: the parameters do not reach the loss yet; use --steps"
+        )
+    resolved = [r for r in results if r.verdict(tol) != "noise"]
+    unresolved = len(results) - len(resolved)
+    worst = max((r.relative_error for r in resolved), default=0.0)
+    within = f"; {unresolved} of {len(results)} directions within their noise floor" if unresolved else ""
+    print(f"max relative error: {worst:.3e} (tolerance {tol:g}){within}")
+    if unresolved == len(results):
+        print("warning: no direction rises above the finite differences' noise: the check resolves nothing")
+    failed = [r for r in results if not r.passed(tol)]
+    if failed:
+        raise GradientCheckError(
+            f"adjoint and finite differences disagree: {worst:.3e} > {tol:g} "
+            f"({len(failed)} of {len(results)} directions, above their noise floor)"
+        )
+    return 0
