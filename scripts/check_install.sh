@@ -7,8 +7,11 @@
 # file (scripts/check_wheel.py), installs it with --no-deps into a venv made with
 # --system-site-packages (the dependencies come from this interpreter: nothing is downloaded twice),
 # checks that the venv imports cosim from the wheel, not from the checkout or an editable install,
-# and runs that cosim from outside the checkout on the shipped scenes whose losses read
-# scenes/assets/*_target.npz. Everything lies in a mktemp -d folder, removed at the end.
+# and runs that cosim from outside the checkout: on the shipped scenes whose losses read
+# scenes/assets/*_target.npz (squeeze_plasticine's fingers reach the block after ~50 steps, so its
+# 2-step gradient is zero: it checks that the target loads and the Chamfer loss runs both ways), and a
+# gradient check that resolves something in 2 steps (elastic_bounce_2d: initial velocities and impulses).
+# Everything lies in a mktemp -d folder, removed at the end.
 set -euo pipefail
 repo="$(cd "$(dirname "$0")/.." && pwd)"
 python="${PYTHON:-python}"
@@ -35,4 +38,5 @@ if [[ "$found" != "$tmp/venv/"* ]]; then
 fi
 "$tmp/venv/bin/cosim" validate make_taco
 "$tmp/venv/bin/cosim" gradcheck squeeze_plasticine --steps 2
+"$tmp/venv/bin/cosim" gradcheck elastic_bounce_2d --steps 2
 echo "packaging check passed in $((SECONDS - start)) s"
