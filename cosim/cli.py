@@ -233,12 +233,12 @@ def cmd_bench(args) -> int:
 
 
 def cmd_render(args) -> int:
-    """Redraw a saved trajectory as ``cosim run``'s preview draws it (``cosim.run.write_trajectory_preview``:
+    """Redraw a saved trajectory as ``cosim run``'s preview draws it (``cosim.trajectory.write_trajectory_preview``:
     particles, rigid bodies at their saved poses, cloth)."""
     import numpy as np
 
     from cosim.errors import InputError
-    from cosim.run import write_trajectory_preview
+    from cosim.trajectory import write_trajectory_preview
 
     scene = _load(args)
     path = Path(args.trajectory)

@@ -5,7 +5,7 @@ from datetime import datetime, timedelta, timezone
 from pathlib import Path
 
 from cosim.bench.report import bench_command, git_commit, markdown_table, report_header
-from cosim.run import hardware_line
+from cosim.hardware import hardware_line
 
 
 def test_the_header_names_the_command_the_utc_date_and_the_hardware():

@@ -190,8 +190,8 @@ def test_scene_with_a_shaken_container_drives_the_liquid(tmp_path):
     """From YAML: the ring container follows its piecewise motion and drags the water with it."""
     from conftest import SCENES
 
-    from cosim.run import Recorder
     from cosim.scene import load_scene
+    from cosim.trajectory import Recorder
 
     scene = load_scene(SCENES / "shake_container_2d.yaml", {"precision": "float64", "steps": 60})
     sim = build_system(scene)

@@ -204,7 +204,7 @@ def tub_scene(model: str, seconds: float, cells: int = 64) -> dict:
 def tub_run(model: str, seconds: float) -> tuple[int, float]:
     """(particles that left the tub's cavity, mean vertical reaction on the tub over the last 0.2 s
     divided by the water's weight)."""
-    from cosim.run import step_reactions
+    from cosim.trajectory import step_reactions
 
     data = tub_scene(model, seconds)
     system = build_system(parse_scene(data, ROOT, origin="tub"))

@@ -49,9 +49,9 @@ def optimize_scene(
     from cosim.adjoint.objective import Objective
     from cosim.adjoint.optimize import PARAM_BOUNDS, minimise
     from cosim.adjoint.report import plot_losses, write_history
-    from cosim.run import Recorder
     from cosim.scene.build import build_system
     from cosim.scene.params import select_params
+    from cosim.trajectory import Recorder
 
     spec = scene.optimize
     sim = build_system(scene, requires_grad=True, steps=steps)

@@ -118,7 +118,7 @@ def run_accuracy_bench(
 
     from cosim.bench.accuracy_problems import PROBLEMS
     from cosim.bench.accuracy_report import Measurement, write_report
-    from cosim.run import hardware_line
+    from cosim.hardware import hardware_line
 
     out_dir.mkdir(parents=True, exist_ok=True)
     log = out_dir / "accuracy_worker.log"

@@ -369,7 +369,7 @@ def run_cloth_bench(out_dir: Path, quick: bool = False, repeat: int = 3, command
 
     from cosim.bench.cloth_step import run_cloth_step_bench
     from cosim.bench.report import bench_command, report_header
-    from cosim.run import hardware_line
+    from cosim.hardware import hardware_line
     from cosim.runtime import ensure_taichi
 
     ensure_taichi("cpu", "float64")

@@ -13,7 +13,7 @@ import csv
 from pathlib import Path
 
 from cosim.errors import InputError
-from cosim.run import hardware_line
+from cosim.hardware import hardware_line
 from cosim.scale.pool import on_ray, run_cases
 
 # one shipped scene per kind of scene: material x dimension x what it couples

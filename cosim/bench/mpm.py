@@ -158,7 +158,7 @@ def write_csv(path: Path, rows: list[dict]) -> None:
 
 def run_throughput(out_dir: Path, configs: list[dict], name: str, command: str | None = None) -> int:
     """Every configuration in its own process; prints a table and writes ``out_dir/<name>.csv`` and ``<name>.md``."""
-    from cosim.run import hardware_line
+    from cosim.hardware import hardware_line
 
     rows = []
     for cfg in configs:
@@ -194,7 +194,7 @@ def by_kernel(records: list) -> list[list]:
 
 def run_profile(out_dir: Path, top: int = 10, command: str | None = None) -> int:
     """Taichi's kernel profiler over 3D 64³ float32: ms per substep of the top kernels, forward and backward."""
-    from cosim.run import hardware_line
+    from cosim.hardware import hardware_line
 
     interp = current_interpreter()
     interp.env["COSIM_KERNEL_PROFILER"] = "1"

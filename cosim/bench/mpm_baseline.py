@@ -108,7 +108,7 @@ def run_baseline_bench(
     """Measure ``configs`` with the baseline in ``folder`` and with this cosim; print and write
     ``out_dir/<name>_baseline.csv`` (medians, ratios), ``<name>_baseline.md`` (the same, headed by ``command``,
     the date and the hardware) and ``<name>_baseline_runs.csv`` (every run)."""
-    from cosim.run import hardware_line
+    from cosim.hardware import hardware_line
 
     base = baseline_interpreter(folder)
     print(f"baseline: {base.python} importing {base.cosim_root}/cosim; current: {current_interpreter().cosim_root}")

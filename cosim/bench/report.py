@@ -57,9 +57,9 @@ def git_commit(root: Path | None = None) -> str | None:
 
 def report_header(command: str, now: datetime | None = None, guards_off: GuardsOff | None = None) -> str:
     """Markdown lines a report starts with: the command line as its title, then date (UTC), hardware
-    (``cosim.run.hardware_line``), the cosim commit when cosim runs from a git checkout and the runner's
+    (``cosim.hardware.hardware_line``), the cosim commit when cosim runs from a git checkout and the runner's
     guards the benchmark ran without (``cosim.guards``); ends with a blank line."""
-    from cosim.run import hardware_line
+    from cosim.hardware import hardware_line
 
     now = (now or datetime.now(timezone.utc)).astimezone(timezone.utc)
     lines = [f"# `{command}`", "", f"- date: {now:%Y-%m-%d %H:%M} UTC", f"- hardware: {hardware_line()}"]
