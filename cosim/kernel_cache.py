@@ -45,7 +45,7 @@ import taichi as ti
 
 TAICHI_LOCK = "ticache.lock"
 FLOCK, OWNER = "cosim.lock", "cosim.owner"
-STALE_S = 60.0  # no Taichi window lasts this long (a test file's 136 kernels: 0.45 s)
+STALE_S = 60.0  # no Taichi window lasts this long: writing even many kernels takes well under a second
 REPORT_AFTER_S = 2.0  # how long a younger foreign lock may stay before it is reported
 WAIT_S = 600.0  # the longest wait for another process's window before going on without the flock
 _state = {"exit_registered": False, "reported": False}
