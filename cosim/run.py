@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from cosim.engines.contract import declares
 from cosim.hardware import hardware_line
 from cosim.scene import Scene
 from cosim.trajectory import Recorder, cloth_engines
@@ -68,7 +69,7 @@ def run_scene(
     if save_target and out_dir is not None:
         final = sim.state()
         targets = {f"x_{name}": final["mpm"]["x"][sl] for name, sl in sim.slices.items()}
-        targets.update({f"x_{name}": final[name]["x"] for name, e in sim.engines.items() if hasattr(e, "mesh")})
+        targets.update({f"x_{e.name}": final[e.name]["x"] for e in cloth_engines(sim)})
         np.savez_compressed(out_dir / "target.npz", **targets)
 
     metrics = {
@@ -132,7 +133,7 @@ def run_scene(
 def cloth_metrics(sim, cloth) -> dict:
     """Vertices, the last Newton solve, and how many particles sit on the wrong side of the sheet
     (traced ``inside``) at the end."""
-    coupler = next(c for c in sim.couplers if getattr(c, "engine", None) == cloth.name and hasattr(c, "state"))
+    coupler = next(c for c in sim.couplers if c.engine == cloth.name and declares(c, "carried_state"))
     tracking = coupler.state()
     inside = 0 if tracking is None else int(np.count_nonzero(tracking["inside"]))
     return {"vertices": int(cloth.mesh.n_vertices), "last_solve": cloth.last_solve, "particles_inside": inside}

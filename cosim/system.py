@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 
 from cosim.conservation import Conservation, control_work
-from cosim.engines.contract import add_states
+from cosim.engines.contract import add_states, declares
 from cosim.errors import SimulationError
 from cosim.step_record import StepRecord
 
@@ -123,13 +123,15 @@ class CoupledSystem:
 
             self.tunnels = TunnelWatch(mpm, rigid.sources, 0.25 * self.dx)
         self.tunnel_share = TUNNEL_SHARE  # inf: count only (a benchmark measuring the contact's failures)
+        # per engine that declares "points": which of them start inside the domain (those must stay in it)
+        self.watched_points = {n: self._inside(e.points()) for n, e in self.engines.items() if declares(e, "points")}
 
     # ------------------------------------------------------------ state of every engine
     def state(self) -> dict[str, dict[str, np.ndarray]]:
         """{engine name: its state}, the MPM under "mpm"; couplers that carry a discrete state of
         their own (the cloth's penetration tracing) add it under "couplers" {name: state}."""
         out = {"mpm": self.mpm.state(), **{name: e.state() for name, e in self.engines.items()}}
-        carried = {c.name: c.state() for c in self.couplers if hasattr(c, "state")}
+        carried = {c.name: c.state() for c in self.couplers if declares(c, "carried_state")}
         if carried:
             out["couplers"] = carried
         return out
@@ -139,7 +141,7 @@ class CoupledSystem:
         for name, e in self.engines.items():
             e.set_state(state[name])
         for c in self.couplers:
-            if hasattr(c, "set_state"):
+            if declares(c, "carried_state"):
                 c.set_state(state["couplers"][c.name])
         self.step_index = step_index
 
@@ -247,6 +249,7 @@ class CoupledSystem:
                 if target in stepped:
                     raise RuntimeError(f"engine '{name}' hands forces to '{target}', which steps before it")
                 forces[target] = f if forces.get(target) is None else forces[target] + f
+        self._check_engine_domain()
         if self.tunnels is not None and tracked:  # the bodies have moved too: their poses now end the step
             self._check_tunnelling(poses)
         self.max_cfl = max(self.max_cfl, cfl)
@@ -329,7 +332,7 @@ class CoupledSystem:
         """[m/s] The fastest boundary surface (rigid bodies, cloth vertices) over the next frame: the
         substep count keeps it under the CFL fraction of a cell per substep, as it does the particles."""
         speeds = [self.rigid.surface_speed(self.frame_dt)] if self.rigid is not None else []
-        speeds += [e.surface_speed(self.frame_dt) for e in self.engines.values() if hasattr(e, "surface_speed")]
+        speeds += [e.surface_speed(self.frame_dt) for e in self.engines.values() if declares(e, "surface_speed")]
         return max(speeds, default=0.0)
 
     def _check_fixed_substeps(self, K: int) -> None:
@@ -404,6 +407,33 @@ class CoupledSystem:
             if c > worst:
                 worst, name = c, body
         return worst, name
+
+    def _inside(self, points: np.ndarray) -> np.ndarray:
+        """(n,) bool: which world points (n, 3) [m] lie in the grid's box [0, domain] (NaN: outside)."""
+        p = np.asarray(points, dtype=np.float64)[:, : len(self.domain)]
+        return np.all((p >= 0.0) & (p <= self.domain), axis=1)
+
+    def _check_engine_domain(self) -> None:
+        """Stop when a rigid body's origin or a cloth vertex that started in the grid's box has left it (or is
+        no longer finite): nothing downstream would notice, and a run that threw a body away looked fine."""
+        for name, started_inside in self.watched_points.items():
+            engine = self.engines[name]
+            points = engine.points()
+            gone = np.flatnonzero(started_inside & ~self._inside(points))
+            if len(gone):
+                i = int(gone[0])
+                where = (
+                    "is not finite"
+                    if not np.all(np.isfinite(points[i]))
+                    else f"is at {np.round(points[i], 4).tolist()} m"
+                )
+                more = f" ({len(gone) - 1} more points too)" if len(gone) > 1 else ""
+                raise SimulationError(
+                    f"step {self.step_index}: engine '{name}': {engine.point_name(i)} left the grid domain "
+                    f"[0, {self.domain.tolist()}] m and {where}{more}; the coupled step is unstable there: a body "
+                    "much lighter than the material pushing it flutters under the once-per-frame exchange (make it "
+                    "heavier), or check the forces, joints and controls acting on it"
+                )
 
     def _check_domain(self, health: dict) -> None:
         """Stop when a body has particles within a cell of the grid's faces or beyond."""

@@ -165,7 +165,9 @@ def rigid_parts(sim) -> tuple[np.ndarray, np.ndarray]:
 
 def cloth_engines(sim) -> list:
     """The system's cloth engines (those with a triangle ``mesh``), in stepping order."""
-    return [e for e in sim.engines.values() if hasattr(e, "mesh")]
+    from cosim.engines.contract import declares
+
+    return [e for e in sim.engines.values() if declares(e, "mesh")]
 
 
 def trajectory_frames(traj, rigid=None) -> list:

@@ -184,3 +184,25 @@ def test_state_round_trip_replays_bit_for_bit():
     b = sim.mpm.state()
     for key in a:
         assert np.array_equal(a[key], b[key]), key
+
+
+def test_a_rigid_body_leaving_the_domain_stops_the_run():
+    """A DART free box thrown at 40 m/s towards x = 1 m (clear of the material) leaves the grid's box
+    within 3 steps of 4 ms; the run stops there naming the engine and the body (it used to go on
+    silently, as a plate thrown off an elastic block did)."""
+    data = make_scene(
+        mpm={"grid": {"cells": 16}, "boundary": {"type": "slip"}, "bodies": [block()]},
+    ).model_dump(exclude_unset=True)
+    link = {"name": "box", "shape": {"type": "box", "size": [0.05, 0.05]}, "density": 500}
+    link["joint"] = {"type": "free", "position": [0.9, 0.8], "qd0": [40.0, 0.0, 0.0]}  # planar: x, y, angle
+    data["articulated"] = {"skeletons": [{"name": "thrown", "links": [link]}]}
+    data["time"] = {"frame_dt": 4e-3, "substeps": "auto"}
+    from cosim.scene import parse_scene
+
+    sim = build_system(parse_scene(data))
+    with pytest.raises(SimulationError) as err:
+        for _ in range(5):
+            sim.step()
+    x = sim.engines["dart"].points()[0, 0]
+    assert sim.step_index == 0 and x > 1.0  # the step that crossed x = 1 m (0.9 m + 40 m/s * 4 ms)
+    assert "engine 'dart': body 'thrown/box' left the grid domain" in str(err.value)

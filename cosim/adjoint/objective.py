@@ -15,7 +15,7 @@ from collections.abc import Callable
 import numpy as np
 
 from cosim.adjoint.tape import Tape
-from cosim.engines.contract import Parameter
+from cosim.engines.contract import Parameter, declares
 
 
 class Objective:
@@ -32,7 +32,7 @@ class Objective:
         self.initial_state = system.state()
         engines = {"mpm": system.mpm, **system.engines}
         self.engines = engines
-        self.initial_material = {name: e.material() for name, e in engines.items() if hasattr(e, "material")}
+        self.initial_material = {name: e.material() for name, e in engines.items() if declares(e, "material")}
         self.parameters: dict[str, Parameter] = {}
         for e in engines.values():
             for p in e.parameters():
@@ -47,7 +47,7 @@ class Objective:
             loss = Loss.for_system(system)
         self.loss = loss
         if checkpoint_every is None:
-            scene = getattr(system, "scene", None)
+            scene = system.scene
             checkpoint_every = scene.gradient.checkpoint_every if scene is not None else 1
         self.tape = Tape(checkpoint_every)
 
@@ -135,7 +135,7 @@ class Objective:
         ``params`` holds one of its material parameters (the others' vjp then reports zeros)."""
         wanted = {self.parameters[name].engine for name in params if self.parameters[name].kind == "material"}
         for name, engine in self.engines.items():
-            if hasattr(engine, "material_grads"):
+            if declares(engine, "material_grads"):
                 engine.material_grads = name in wanted
 
     def evaluate(self, params: dict[str, np.ndarray], grad: bool = False):

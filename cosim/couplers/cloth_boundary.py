@@ -50,6 +50,7 @@ from cosim.couplers.cloth_mesh_query import INTERIOR, MeshQuery, closest_point_o
 from cosim.couplers.cloth_topology import build_topology
 from cosim.couplers.cloth_tracing import CANDIDATES, PenetrationTracer
 from cosim.engines import field_pool
+from cosim.engines.contract import ContactTraits
 from cosim.engines.data_oriented import data_oriented
 
 FAR = 1e30  # [m] the distance reported where no face is within the band
@@ -72,10 +73,7 @@ class ClothBoundary:
     """
 
     n = 1
-    # a light sheet coupled explicitly: the contact models keep the paper's behaviour with it (no radius
-    # offset, the forecast's blended BC_p for every particle); without the blend's damping towel_squash's
-    # towel moved 0.11 m in one frame (cosim.couplers.contact)
-    sheet = True
+    capabilities = frozenset({"substep_hooks", "node_queries"})
 
     def __init__(
         self,
@@ -92,7 +90,11 @@ class ClothBoundary:
             raise ValueError("a cloth boundary needs a 3D MPM engine")
         self.engine = engine
         self.band = float(engine.dx if band is None else band)
-        self.grid_band = self.band  # the grid model constrains nodes within the band on either side
+        # a light sheet without volume, coupled explicitly (``ContactTraits`` says why each); the grid model
+        # constrains nodes within the band on either side
+        self.contact_traits = ContactTraits(
+            offset=False, blend_all=True, liquid_support=False, forecast_alpha=0.8, grid_band=self.band
+        )
         self.radius = float(4.0 * self.band if radius is None else radius)
         grad = engine.cfg.requires_grad if requires_grad is None else bool(requires_grad)
         self.topology = build_topology(verts, faces, self.radius, max_neighbours)

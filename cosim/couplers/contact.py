@@ -30,6 +30,7 @@ from cosim.couplers.contact_rules import (
     surface_offset,
 )
 from cosim.engines import field_pool
+from cosim.engines.contract import traits_of
 from cosim.engines.data_oriented import data_oriented
 
 
@@ -193,7 +194,7 @@ class ForecastContact:
                     vc = source.contact_velocity(s, b, x, p)
                     v_out = v
                     blended = 0
-                    if ti.static(self.blend_where == "all" or getattr(source, "sheet", False)):
+                    if ti.static(self.blend_where == "all" or traits_of(source).blend_all):
                         blended = 1
                     elif ti.static(self.blend_where == "liquids"):
                         blended = self.engine.is_liquid(p)

@@ -18,6 +18,7 @@ from cosim.couplers.contact_rules import (
     speculative_bc,
 )
 from cosim.engines import field_pool
+from cosim.engines.contract import declares, traits_of
 from cosim.engines.data_oriented import data_oriented
 
 
@@ -52,7 +53,7 @@ class GridContact:
         self.engine = engine
         self.sources = list(sources)
         for source in self.sources:  # this model asks about grid nodes (p = -1)
-            if hasattr(source, "queries_nodes"):
+            if declares(source, "node_queries"):
                 source.queries_nodes = True
         self.friction = float(friction)
         if support not in GRID_SUPPORT:
@@ -74,9 +75,14 @@ class GridContact:
         self.grid_adjoints = [self.output] + ([self.liquid, self.solid] if self.liquid is not None else [])
         self.upstream = engine.attach_grid_hook(self)
 
+    def _band_of(self, source) -> float:
+        """[m] The gap kept from ``source``: its declared ``grid_band`` (a sheet), else the model's band."""
+        band = traits_of(source).grid_band
+        return self.band if band is None else band
+
     def _held_by_liquid(self, source) -> bool:
         """Whether liquid near ``source`` is held by its own edge (``support: material``, not a sheet)."""
-        return self.support == "material" and not getattr(source, "sheet", False)
+        return self.support == "material" and traits_of(source).liquid_support
 
     def _liquid_held_at(self, source) -> bool:
         """Whether this model reads the liquid fill at ``source``'s nodes (for ``ti.static``)."""
@@ -196,7 +202,7 @@ class GridContact:
                 for src in ti.static(self.sources):
                     for b in ti.static(range(src.n)):
                         d, n = src.distance_normal(s, b, xi, -1)
-                        gap = d - ti.static(getattr(src, "grid_band", self.band))
+                        gap = d - ti.static(self._band_of(src))
                         if ti.static(self._liquid_held_at(src)):  # noqa: SIM102 (compile-time, then run-time)
                             # beyond LIQUID_REACH cells the liquid's gap exceeds a cell whatever its fill (it
                             # reaches at most about 1.2 cells past a node), so both gaps leave the node free

@@ -4,6 +4,8 @@ default step. Kernels of ``cosim.couplers.contact`` inline them."""
 
 import taichi as ti
 
+from cosim.engines.contract import traits_of
+
 STANDARD_GRAVITY = 9.80665  # [m/s^2] the unit of the particle model's stiffness
 BLEND_WHERE = ("liquids", "all", "none")  # forecast: which particles get the paper's blended BC_p
 SPECULATIVE_SOFT = 2.0  # the speculative limit is rounded over this fraction of the gap (``soft_ramp``)
@@ -49,15 +51,14 @@ def default_alpha(dim: int, sources: list) -> float:
     """The forecast model's gradient step: 0.8 in 2D; in 3D 0.3 (0.8 spread each particle's correction
     over its 27 nodes' neighbours and cost an elastic sphere a tenth of its restitution), but 0.8 with a
     cloth sheet (at 0.3, 46 of make_taco's filling particles crossed the tortilla)."""
-    if dim == 2 or any(getattr(src, "sheet", False) for src in sources):
-        return 0.8
-    return 0.3
+    needed = [traits_of(src).forecast_alpha for src in sources if traits_of(src).forecast_alpha is not None]
+    return max([0.8 if dim == 2 else 0.3, *needed])
 
 
 def source_offset(source, offset: float) -> float:
     """The offset [m] (AUTO_OFFSET: the particle's radius) a contact model keeps from ``source``: 0 from
-    a cloth sheet (``sheet``), whose contact keeps the paper's form."""
-    return 0.0 if getattr(source, "sheet", False) else offset
+    a source whose ``ContactTraits.offset`` is False (a cloth sheet, whose contact keeps the paper's form)."""
+    return offset if traits_of(source).offset else 0.0
 
 
 @ti.func

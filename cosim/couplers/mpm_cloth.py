@@ -36,6 +36,8 @@ class MPMClothCoupler:
     """Joins the cloth engine ``cloth`` (anything with ``name`` and ``state()`` -> {x, v}) to the MPM through
     the boundary source attached under ``name`` (default: the cloth engine's name)."""
 
+    capabilities = frozenset({"carried_state"})
+
     def __init__(self, cloth, name: str | None = None, max_travel: float = np.inf):
         self.cloth = cloth
         self.engine = cloth.name

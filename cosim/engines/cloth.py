@@ -121,6 +121,8 @@ class _Step:
 class ClothEngine(ClothAdjoint):
     """A triangle-mesh cloth (see the module docstring); conforms to ``cosim.engines.contract.Engine``."""
 
+    capabilities = frozenset({"points", "surface_speed", "material", "mesh"})
+
     def __init__(
         self,
         mesh: ClothMesh,
@@ -196,6 +198,13 @@ class ClothEngine(ClothAdjoint):
     def state(self) -> dict[str, np.ndarray]:
         """``x`` (V, 3) [m] vertex positions, ``v`` (V, 3) [m/s] velocities (copies)."""
         return {"x": self.x.copy(), "v": self.v.copy()}
+
+    def points(self) -> np.ndarray:
+        """(V, 3) [m] the vertices, which must stay in the MPM's domain."""
+        return self.x
+
+    def point_name(self, i: int) -> str:
+        return f"vertex {i}"
 
     def surface_speed(self, frame_dt: float) -> float:
         """[m/s] The fastest vertex now (the MPM's substep count keeps the sheet under a cell per substep)."""

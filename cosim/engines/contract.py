@@ -74,6 +74,14 @@ The loop (``cosim.system.CoupledSystem``), as in the paper's chain rule::
     reverse: each engine's vjp -> dL/ds_e, dL/da_e, dL/dF_e; each coupler's forces_vjp
     -> reaction adjoints; one MPM vjp with all of them -> dL/ds_M and boundary adjoints;
     each coupler's boundary_vjp -> added to dL/ds_e.
+
+Optional capabilities
+---------------------
+Beyond its protocol, an engine, coupler or boundary source may offer more; it says so in
+its ``capabilities`` (a frozenset of the names in ``CAPABILITIES``) and the loop, the
+objective and the contact models ask ``declares(obj, name)``, never ``hasattr``. What a
+contact model needs to know of a boundary it reads from the source's ``ContactTraits``
+(its parameters, not its kind).
 """
 
 from __future__ import annotations
@@ -139,6 +147,60 @@ class Coupler(Protocol):
     def forces_vjp(self, record: Any, grad_forces: Any) -> tuple[Reactions, Any]: ...
 
     def boundary_vjp(self, record: Any, grad_boundary: BoundaryStates, carry: Any) -> State: ...
+
+
+CAPABILITIES = {
+    # engines
+    "points": "points() -> (n, 3) [m]: world points that must stay in the MPM's domain (a rigid body's origin, "
+    "a cloth vertex); point_name(i) names one. The runner stops a run when one that started inside leaves it",
+    "surface_speed": "surface_speed(frame_dt) -> [m/s]: the fastest surface the MPM meets over the next frame, "
+    "which the substep count keeps under the CFL bound",
+    "material": "material() -> {key: 0-d array} and set_parameters(values): material parameters",
+    "material_grads": "a material_grads flag: its vjp skips material gradients while False",
+    "mesh": "mesh (a ClothMesh) and state x, v (V, 3): a triangle mesh whose vertices losses and previews read",
+    # couplers
+    "carried_state": "state() / set_state(s): a state of its own carried from step to step (the cloth's "
+    "penetration tracing), part of the system's state under 'couplers'",
+    # boundary sources
+    "substep_hooks": "before_substep(src, s) and before_substep_grad(src, s) around each MPM substep",
+    "node_queries": "a queries_nodes flag: while True it answers about grid nodes (p = -1), which the grid model asks",
+}
+
+
+def traits_of(source: Any) -> ContactTraits:
+    """The ``ContactTraits`` a boundary source declares (``contact_traits``; a solid body's by default)."""
+    return getattr(source, "contact_traits", SOLID)
+
+
+def declares(obj: Any, capability: str) -> bool:
+    """Whether ``obj`` (an engine, coupler or boundary source) declares ``capability`` (see ``CAPABILITIES``)."""
+    if capability not in CAPABILITIES:
+        raise KeyError(f"unknown capability {capability!r}; known: {sorted(CAPABILITIES)}")
+    return capability in getattr(obj, "capabilities", frozenset())
+
+
+@dataclass(frozen=True)
+class ContactTraits:
+    """What a contact model needs to know of a boundary source, declared by the source (``contact_traits``).
+
+    ``offset``: hold particles at their radius from the surface (False: at the surface itself, a sheet
+    without volume, whose contact keeps the paper's form). ``blend_all``: the forecast model's blended
+    BC_p for every particle (a light sheet coupled explicitly; without the blend's damping towel_squash's
+    towel moved 0.11 m in one frame). ``liquid_support``: liquid near it may be held by its own edge (the
+    grid model's fill; a two-sided sheet says nothing of which side material is on). ``forecast_alpha``:
+    the forecast model's gradient step this source needs at least (0.8 for a sheet: at 0.3, 46 of
+    make_taco's filling particles crossed the tortilla), None for the model's default. ``grid_band`` [m]:
+    the gap the grid model keeps from it for all material (a two-sided sheet), None for the model's band.
+    """
+
+    offset: bool = True
+    blend_all: bool = False
+    liquid_support: bool = True
+    forecast_alpha: float | None = None
+    grid_band: float | None = None
+
+
+SOLID = ContactTraits()
 
 
 def add_states(a: State | None, b: State | None) -> State | None:

@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from cosim.engines.contract import declares
 from cosim.engines.data_oriented import data_oriented
 from cosim.engines.mpm_adjoint import MPMAdjointKernels
 from cosim.engines.mpm_energy import TERMS as ENERGY_TERMS
@@ -64,6 +65,7 @@ class MPMEngine(MPMAdjointKernels):
     """The soft-body engine ("mpm"): ``state`` / ``set_state`` / ``step`` / ``vjp`` / ``parameters``."""
 
     name = "mpm"
+    capabilities = frozenset({"material", "material_grads"})
 
     def __init__(self, config: MPMConfig, bodies: list[ParticleBody]):
         self.boundaries: dict = {}  # name -> boundary source
@@ -119,9 +121,8 @@ class MPMEngine(MPMAdjointKernels):
         if name in self.boundaries:
             raise ValueError(f"a boundary source named '{name}' is already attached")
         self.boundaries[name] = source
-        if hasattr(source, "before_substep"):
+        if declares(source, "substep_hooks"):
             self.substep_preparers.append(source.before_substep)
-        if hasattr(source, "before_substep_grad"):
             self.substep_preparer_grads.append(source.before_substep_grad)
 
     def _check_unspecialised(self, what: str) -> None:

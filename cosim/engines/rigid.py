@@ -63,6 +63,8 @@ class RigidEngine(RigidAdjoint):
     """One DART world holding the given skeletons (deactivation off, so replay from a state is bitwise),
     and ``ground``, a static floor the colliding skeletons rest on (needs ``collision``)."""
 
+    capabilities = frozenset({"points"})
+
     def __init__(
         self,
         skeleton_specs: list[SkeletonSpec],
@@ -312,6 +314,13 @@ class RigidEngine(RigidAdjoint):
                 )
 
     # ------------------------------------------------------------------------------------ body states
+
+    def points(self) -> np.ndarray:
+        """(bodies, 3) [m] the body origins, which must stay in the MPM's domain if they start in it."""
+        return self.body_states()["position"]
+
+    def point_name(self, i: int) -> str:
+        return f"body '{self.body_names[i]}'"
 
     def body_states(self) -> dict[str, np.ndarray]:
         """Per body (``body_names`` order), world frame: ``position`` of the body origin (nb, 3), ``rotation``

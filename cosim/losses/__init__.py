@@ -40,7 +40,9 @@ class Loss:
     @classmethod
     def for_system(cls, system) -> Loss:
         """The loss of the scene ``system`` was built from."""
-        cloths = [e for e in system.engines.values() if hasattr(e, "mesh")]
+        from cosim.trajectory import cloth_engines
+
+        cloths = cloth_engines(system)
         x0 = system.initial["mpm"]["x"]
         return cls.for_scene(system.scene, system.slices, x0, system.mpm.mass, system.engines.get("dart"), cloths)
 
