@@ -42,4 +42,4 @@ def announce(off: GuardsOff) -> str:
 def measure_only(sim) -> None:
     """Turn the energy budget and the tunnelling stop of ``sim`` (a ``CoupledSystem``) into measurements:
     the excess and the particles through walls are still recorded, no run stops on them."""
-    sim.conservation.share = sim.tunnel_share = math.inf
+    sim.guard.conservation.share = sim.guard.tunnel_share = math.inf

@@ -10,10 +10,11 @@ through their contracts (``cosim.engines.contract``)::
                          "reactions" {later engine: forces} adds to that engine's forces)
 
 and its reverse (``vjp``; engine-to-engine reactions, a cloth's contact on rigid links, are
-not differentiated). It picks the substep count K from the CFL bound (or checks a
-fixed one) and stops with a ``SimulationError`` naming the step, the body and the
-quantity (and for NaN/inf the substep) as soon as a step produces NaN/inf, violates the CFL
-bound or leaves the grid; the MPM engine checks its particles on the device and hands over
+not differentiated). The runner's guards (``cosim.step_guard``) sit around the exchange: they
+pick the substep count K from the CFL bound (or check a fixed one), redo a step that broke it,
+and stop with a ``SimulationError`` naming the step, the body and the quantity as soon as a step
+produces NaN/inf, violates the CFL bound, leaves the grid, breaks the energy budget or lets
+material through a rigid body; the MPM engine checks its particles on the device and hands over
 per-body counts (``MPMEngine.health``), not its state.
 ``rollout`` is the one loop behind ``cosim run``, the objective, gradcheck, optimize and
 the benchmarks. Scenes assemble a system with ``cosim.scene.build_system``.
@@ -29,13 +30,9 @@ from typing import Any
 
 import numpy as np
 
-from cosim.conservation import Conservation, control_work
 from cosim.engines.contract import add_states, declares
-from cosim.errors import SimulationError
+from cosim.step_guard import StepGuard
 from cosim.step_record import StepRecord
-
-RETRIES = 4  # auto substeps: how often a step is redone with twice the substeps
-TUNNEL_SHARE, TUNNEL_MIN = 0.01, 10  # particles through a rigid body in one step that stop the run
 
 
 @dataclass
@@ -108,23 +105,29 @@ class CoupledSystem:
             np.concatenate([c.indices for c in self.controls]) if self.controls else np.zeros(0, dtype=int)
         )
         self.step_index = 0
-        self.max_cfl = 0.0
         self.last = None  # the record of the last step
         self.timings: dict[str, float] | None = None  # seconds per part when a benchmark sets a dict
         self.scene = scene  # the scene it was built from, if any (the default loss and reports read it)
         self.rigid = rigid  # cosim.couplers.rigid_view.RigidBodies: names, poses, counts of the rigid bodies
         self.initial = self.state()
-        self.conservation = Conservation(mpm, self.gravity, self.domain)
-        self.passed_through: dict[str, int] = {}  # "body/rigid body": particles that went through it
-        watched = rigid is not None and rigid.sources  # rigid bodies the MPM sees (none: links it does not)
-        self.tunnels = None
-        if watched:
-            from cosim.couplers.tunnelling import TunnelWatch  # Taichi: importing the system (ActionPlan) needs none
+        self.guard = StepGuard(self)  # the runner's checks around each step (cosim.step_guard)
 
-            self.tunnels = TunnelWatch(mpm, rigid.sources, 0.25 * self.dx)
-        self.tunnel_share = TUNNEL_SHARE  # inf: count only (a benchmark measuring the contact's failures)
-        # per engine that declares "points": which of them start inside the domain (those must stay in it)
-        self.watched_points = {n: self._inside(e.points()) for n, e in self.engines.items() if declares(e, "points")}
+    # the guard's measurements, read by the runner's metrics and the benchmarks
+    @property
+    def conservation(self):
+        return self.guard.conservation
+
+    @property
+    def passed_through(self) -> dict[str, int]:
+        return self.guard.passed_through
+
+    @property
+    def max_cfl(self) -> float:
+        return self.guard.max_cfl
+
+    @property
+    def tunnel_share(self) -> float:
+        return self.guard.tunnel_share
 
     # ------------------------------------------------------------ state of every engine
     def state(self) -> dict[str, dict[str, np.ndarray]]:
@@ -148,7 +151,7 @@ class CoupledSystem:
     def reset(self) -> None:
         """Back to the initial state of every engine."""
         self.set_state(self.initial)
-        self.max_cfl = 0.0
+        self.guard.max_cfl = 0.0
 
     # ------------------------------------------------------------ inputs
     def default_impulses(self) -> np.ndarray | None:
@@ -176,86 +179,58 @@ class CoupledSystem:
 
     # ------------------------------------------------------------ forward
     def step(self, impulse: np.ndarray | None = None, actions: dict[str, np.ndarray] | None = None) -> StepRecord:
-        """One macro step with checks: couplers' boundaries, the MPM's K substeps, couplers' forces,
-        every engine's step. ``impulse`` (N, d) [N s]; ``actions`` {engine: this step's action}
-        (default: the scene's sequences)."""
-        st = self.stepping
-        t0 = self.step_index * self.frame_dt
-        tracked = self.conservation.begin_step(self.step_index)  # not a replay (reads the state it starts from)
-        fixed = st.fixed or (st.grad_substeps if st.requires_grad else 0)
-        speed = self.mpm.max_speed()
-        if fixed:
-            self._check_fixed_substeps(fixed)
-        else:
-            speed = max(speed, self.boundary_speed())  # a fixed count does not depend on it
-        speed += float(np.linalg.norm(self.gravity)) * self.frame_dt
-        K = fixed or self.auto_substeps(speed)
-        poses = self.rigid.poses() if self.tunnels is not None else None  # where the bodies start the step
-        if self.tunnels is not None:
-            self.tunnels.begin()
-        for attempt in range(RETRIES + 1):
-            if K > st.max_substeps:
-                raise SimulationError(
-                    f"step {self.step_index}: the CFL bound needs {K} substeps, more than time.max_substeps = "
-                    f"{st.max_substeps} (max speed {speed:.3g} m/s): the simulation is blowing up or "
-                    "frame_dt is too long"
-                )
+        """One macro step: couplers' boundaries, the MPM's K substeps, couplers' forces, every engine's step,
+        inside the runner's guards (``cosim.step_guard``). ``impulse`` (N, d) [N s]; ``actions`` {engine:
+        this step's action} (default: the scene's sequences)."""
+        guard, t0 = self.guard, self.step_index * self.frame_dt
+        guard.begin_step()
+        K = guard.substeps()
+        while True:  # the guard doubles K while a step breaks the CFL bound (auto substeps)
             dt = self.frame_dt / K
-            boundaries, coupler_records = {}, {}
             with self._timed("couplers"):
-                for c in self.couplers:
-                    boundaries[c.source], coupler_records[c.name] = c.boundary(dt, K)
+                exchange = {c.name: c.boundary(dt, K) for c in self.couplers}  # engine states -> boundary states
+            boundaries = {c.source: exchange[c.name][0] for c in self.couplers}
             with self._timed("mpm"):
-                outputs, mpm_record = self.mpm.step(
-                    {"dt": dt, "substeps": K, "impulse": impulse, "boundaries": boundaries}
-                )
-            health = outputs["health"]
-            self._check_finite(health, K)
-            cfl, body = self._cfl(health, dt)
-            if cfl <= st.cfl:
+                inputs = {"dt": dt, "substeps": K, "impulse": impulse, "boundaries": boundaries}
+                outputs, mpm_record = self.mpm.step(inputs)
+            retry = guard.retry(outputs["health"], dt, K)
+            if retry is None:
                 break
-            if fixed or attempt == RETRIES:
-                if st.fixed:
-                    fix = "raise time.substeps or set it to 'auto'"
-                elif fixed:
-                    fix = f"gradient runs fix the substeps at the start ({K} here); set time.substeps higher"
-                else:
-                    fix = "the motion is too violent for time.max_substeps"
-                raise SimulationError(
-                    f"step {self.step_index}: CFL number {cfl:.3f} > {st.cfl} in body '{body}' "
-                    f"(max |v| dt / dx with dt = {dt:.3g} s); {fix}"
-                )
             self.mpm.set_state(mpm_record.state)
-            K *= 2
-        self._check_domain(health)
-        if tracked and self.step_index == 0 and self.tunnels is not None:
-            self.tunnels.reset()
-            self.passed_through = {}
-        if tracked:
-            self._account_energy(mpm_record, boundaries, outputs["reactions"])
-        forces: dict[str, Any] = {}
-        with self._timed("couplers"):
-            for c in self.couplers:
-                f = c.forces(coupler_records[c.name], outputs["reactions"][c.source])
-                if f is not None:
-                    forces[c.engine] = f if forces.get(c.engine) is None else forces[c.engine] + f
-        engine_records, stepped = {}, set()
-        for name, engine in self.engines.items():
-            act = actions[name] if actions is not None and name in actions else self.action(name, self.step_index)
-            with self._timed(name):
-                engine_out, engine_records[name] = engine.step({"action": act, "forces": forces.get(name)})
-            stepped.add(name)
-            for target, f in (engine_out.get("reactions") or {}).items():  # e.g. a cloth pressing on DART links
-                if target in stepped:
-                    raise RuntimeError(f"engine '{name}' hands forces to '{target}', which steps before it")
-                forces[target] = f if forces.get(target) is None else forces[target] + f
-        self._check_engine_domain()
-        if self.tunnels is not None and tracked:  # the bodies have moved too: their poses now end the step
-            self._check_tunnelling(poses)
-        self.max_cfl = max(self.max_cfl, cfl)
+            K = retry
+        guard.after_material(mpm_record, boundaries, outputs)
+        coupler_records = {name: record for name, (_states, record) in exchange.items()}
+        with self._timed("couplers"):  # reactions -> each engine's external forces
+            forces = self._forces(coupler_records, outputs["reactions"])
+        engine_records = self._step_engines(forces, actions)
+        guard.end_step()
         self.step_index += 1
         self.last = StepRecord(t0, mpm_record, engine_records, coupler_records, {"reactions": outputs["reactions"]})
         return self.last
+
+    def _forces(self, coupler_records: dict, reactions: dict) -> dict[str, Any]:
+        """{engine: the sum of its couplers' forces} from the MPM's reactions per boundary source."""
+        forces: dict[str, Any] = {}
+        for c in self.couplers:
+            f = c.forces(coupler_records[c.name], reactions[c.source])
+            if f is not None:
+                forces[c.engine] = f if forces.get(c.engine) is None else forces[c.engine] + f
+        return forces
+
+    def _step_engines(self, forces: dict[str, Any], actions: dict[str, np.ndarray] | None) -> dict[str, Any]:
+        """Every manipulator engine's step in order, each with its action and forces; an engine's output
+        "reactions" {later engine: forces} (a cloth pressing on DART links) adds to that engine's forces."""
+        records, stepped = {}, set()
+        for name, engine in self.engines.items():
+            act = actions[name] if actions is not None and name in actions else self.action(name, self.step_index)
+            with self._timed(name):
+                out, records[name] = engine.step({"action": act, "forces": forces.get(name)})
+            stepped.add(name)
+            for target, f in (out.get("reactions") or {}).items():
+                if target in stepped:
+                    raise RuntimeError(f"engine '{name}' hands forces to '{target}', which steps before it")
+                forces[target] = f if forces.get(target) is None else forces[target] + f
+        return records
 
     def rollout(
         self,
@@ -335,114 +310,8 @@ class CoupledSystem:
         speeds += [e.surface_speed(self.frame_dt) for e in self.engines.values() if declares(e, "surface_speed")]
         return max(speeds, default=0.0)
 
-    def _check_fixed_substeps(self, K: int) -> None:
-        """A fixed substep count was checked against the scene's materials at build; E or nu set since
-        (an optimisation, a gradient check) can move the stability bound dx / c past it."""
-        c, body = self.mpm.wave_speed()
-        dt = self.frame_dt / K
-        if dt * c > self.dx:
-            raise SimulationError(
-                f"step {self.step_index}: {K} fixed substeps give dt = {dt:.3g} s, above the stability bound "
-                f"dx / c = {self.dx / c:.3g} s of body '{body}' with its current E and nu (wave speed c = {c:.3g} "
-                "m/s, set after the build); bound E (optimize) or raise time.substeps"
-            )
-
     def _timed(self, key: str):
         return _Stopwatch(self.timings, key)
-
-    def _account_energy(self, record, boundaries: dict, reactions: dict) -> None:
-        """The work the boundaries and controls did on the material this step, and the energy check on
-        the state it ended in, the engine's current one (``cosim.conservation``)."""
-        cons = self.conservation
-        for name, states in boundaries.items():
-            cons.add_work(self.mpm.boundaries[name].work(states, reactions[name]))
-        if record.impulse is not None:
-            cons.add_work(control_work(record.impulse, record.state["v"], self.mpm.mass))
-        cons.end_step(self.step_index)
-
-    def _check_tunnelling(self, poses0: list) -> None:
-        """Count the particles that went through a rigid body this step, the bodies at ``poses0`` when it
-        began (``couplers.tunnelling``), into ``self.passed_through`` {"body/rigid body": count}; stop when a
-        body goes through, i.e. more than ``TUNNEL_SHARE`` of its particles (at least ``TUNNEL_MIN``) in one
-        step: the contact failed."""
-        crossed = self.tunnels.step(poses0, self.rigid.poses())
-        for j, rigid_name in enumerate(self.rigid.names):
-            for i, (body, sl) in enumerate(self.slices.items()):
-                n = int(crossed[i, j])
-                if not n:
-                    continue
-                key = f"{body}/{rigid_name}"
-                self.passed_through[key] = self.passed_through.get(key, 0) + n
-                if n > max(TUNNEL_MIN, self.tunnel_share * (sl.stop - sl.start)):
-                    model = self.scene.contact.model if self.scene is not None else "?"
-                    others = " or ".join(m for m in ("forecast", "grid") if m != model)
-                    raise SimulationError(
-                        f"step {self.step_index}: {n} particles of body '{body}' went through rigid body "
-                        f"'{rigid_name}' (contact model '{model}'): the contact cannot stop them at this speed "
-                        f"and wall thickness; use contact.model {others}, a thicker wall or a smaller time.cfl"
-                        + (", or a larger contact.stiffness" if model == "particle" else "")
-                    )
-
-    def _check_finite(self, health: dict, K: int) -> None:
-        """Stop at the first body (in body order) whose particles hold a NaN or inf (``MPMEngine.health``),
-        naming the quantity (the first of v, x, F, C with one) and the substep of K it appeared in."""
-        names = {"x": "position", "v": "velocity", "F": "deformation gradient", "C": "affine velocity"}
-        for body, h in health.items():
-            key = next((k for k in ("v", "x", "F", "C") if h.non_finite[k]), None)
-            if key is None:
-                continue
-            first = K - 1 if h.first_bad is None else h.first_bad  # None: no G2P saw it (mpm_watch); the last substep
-            where = "in the state the step started from" if first < 0 else f"first in substep {first} (0-based) of {K}"
-            raise SimulationError(
-                f"step {self.step_index}: body '{body}': non-finite {names[key]} ({key}) in "
-                f"{h.non_finite[key]} particles, {where}; the step is unstable: lower time.frame_dt, use more "
-                "substeps or a smaller time.cfl, or check the material's E"
-            )
-
-    def _cfl(self, health: dict, dt: float) -> tuple[float, str]:
-        """The largest CFL number max|v| dt / dx over the bodies and its body."""
-        worst, name = 0.0, ""
-        for body, h in health.items():
-            c = h.speed * dt / self.dx
-            if c > worst:
-                worst, name = c, body
-        return worst, name
-
-    def _inside(self, points: np.ndarray) -> np.ndarray:
-        """(n,) bool: which world points (n, 3) [m] lie in the grid's box [0, domain] (NaN: outside)."""
-        p = np.asarray(points, dtype=np.float64)[:, : len(self.domain)]
-        return np.all((p >= 0.0) & (p <= self.domain), axis=1)
-
-    def _check_engine_domain(self) -> None:
-        """Stop when a rigid body's origin or a cloth vertex that started in the grid's box has left it (or is
-        no longer finite): nothing downstream would notice, and a run that threw a body away looked fine."""
-        for name, started_inside in self.watched_points.items():
-            engine = self.engines[name]
-            points = engine.points()
-            gone = np.flatnonzero(started_inside & ~self._inside(points))
-            if len(gone):
-                i = int(gone[0])
-                where = (
-                    "is not finite"
-                    if not np.all(np.isfinite(points[i]))
-                    else f"is at {np.round(points[i], 4).tolist()} m"
-                )
-                more = f" ({len(gone) - 1} more points too)" if len(gone) > 1 else ""
-                raise SimulationError(
-                    f"step {self.step_index}: engine '{name}': {engine.point_name(i)} left the grid domain "
-                    f"[0, {self.domain.tolist()}] m and {where}{more}; the coupled step is unstable there: a body "
-                    "much lighter than the material pushing it flutters under the once-per-frame exchange (make it "
-                    "heavier), or check the forces, joints and controls acting on it"
-                )
-
-    def _check_domain(self, health: dict) -> None:
-        """Stop when a body has particles within a cell of the grid's faces or beyond."""
-        for body, h in health.items():
-            if h.outside:
-                raise SimulationError(
-                    f"step {self.step_index}: body '{body}': {h.outside} particles left the grid domain "
-                    f"[0, {self.domain.tolist()}] m; enable walls (mpm.boundary.type) or enlarge mpm.grid"
-                )
 
 
 class _Stopwatch:

@@ -1,0 +1,225 @@
+"""The runner's guards around one coupled step (``CoupledSystem.step``): monitors, not part of the exchange.
+
+Per macro step: the substep count from the CFL bound (or a fixed count, checked against the
+material's stability bound) and the retry with twice the substeps while a step breaks the bound;
+NaN/inf in the material at the substep it appeared; particles leaving the grid; the energy budget
+(``cosim.conservation``); rigid-body origins and cloth vertices leaving the grid (engines that
+declare ``points``); particles through a rigid body (``cosim.couplers.tunnelling``). Each stops the
+run with a ``SimulationError`` naming the step, the body and the quantity, and a fix.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from cosim.conservation import Conservation, control_work
+from cosim.engines.contract import declares
+from cosim.errors import SimulationError
+
+RETRIES = 4  # auto substeps: how often a step is redone with twice the substeps
+TUNNEL_SHARE, TUNNEL_MIN = 0.01, 10  # particles through a rigid body in one step that stop the run
+
+
+class StepGuard:
+    """The guards of ``system`` (a ``CoupledSystem``); ``begin_step`` / ``substeps`` / ``retry`` /
+    ``after_material`` / ``end_step`` in that order, once per macro step."""
+
+    def __init__(self, system):
+        self.system = system
+        self.conservation = Conservation(system.mpm, system.gravity, system.domain)
+        self.passed_through: dict[str, int] = {}  # "body/rigid body": particles that went through it
+        self.tunnel_share = TUNNEL_SHARE  # inf: count only (a benchmark measuring the contact's failures)
+        self.max_cfl = 0.0
+        self.tunnels = None
+        rigid = system.rigid
+        if rigid is not None and rigid.sources:  # rigid bodies the MPM sees (none: links it does not)
+            from cosim.couplers.tunnelling import TunnelWatch  # Taichi: importing the system needs none
+
+            self.tunnels = TunnelWatch(system.mpm, rigid.sources, 0.25 * system.dx)
+        # per engine that declares "points": which start inside the domain (those must stay in it)
+        self.watched_points = {
+            name: self._inside(e.points()) for name, e in system.engines.items() if declares(e, "points")
+        }
+
+    # ------------------------------------------------------------ around the exchange
+    def begin_step(self) -> None:
+        """Before anything moves: the energy budget's start (not in a replay) and the rigid poses."""
+        s = self.system
+        self._tracked = self.conservation.begin_step(s.step_index)
+        self._poses = s.rigid.poses() if self.tunnels is not None else None  # where the bodies start the step
+        if self.tunnels is not None:
+            self.tunnels.begin()
+        self._attempt, self._cfl = 0, 0.0
+
+    def substeps(self) -> int:
+        """K for this step: the fixed count (gradient runs fix it at the start; checked against the
+        current E and nu), else the CFL bound over the material's and the boundaries' speeds."""
+        s, st = self.system, self.system.stepping
+        self._fixed = st.fixed or (st.grad_substeps if st.requires_grad else 0)
+        speed = s.mpm.max_speed()
+        if self._fixed:
+            self._check_fixed_substeps(self._fixed)
+        else:
+            speed = max(speed, s.boundary_speed())  # a fixed count does not depend on it
+        self._speed = speed + float(np.linalg.norm(s.gravity)) * s.frame_dt
+        K = self._fixed or s.auto_substeps(self._speed)
+        self._check_limit(K)
+        return K
+
+    def retry(self, health: dict, dt: float, K: int) -> int | None:
+        """After the material's K substeps: stop at a NaN/inf; None when the CFL bound held, else the
+        substep count to redo the step with (auto substeps), or stop (fixed, or out of retries)."""
+        st = self.system.stepping
+        self._check_finite(health, K)
+        cfl, body = self._worst_cfl(health, dt)
+        if cfl <= st.cfl:
+            self._cfl = cfl
+            return None
+        if self._fixed or self._attempt == RETRIES:
+            if st.fixed:
+                fix = "raise time.substeps or set it to 'auto'"
+            elif self._fixed:
+                fix = f"gradient runs fix the substeps at the start ({K} here); set time.substeps higher"
+            else:
+                fix = "the motion is too violent for time.max_substeps"
+            raise SimulationError(
+                f"step {self.system.step_index}: CFL number {cfl:.3f} > {st.cfl} in body '{body}' "
+                f"(max |v| dt / dx with dt = {dt:.3g} s); {fix}"
+            )
+        self._attempt += 1
+        self._check_limit(2 * K)
+        return 2 * K
+
+    def after_material(self, mpm_record, boundaries: dict, outputs: dict) -> None:
+        """Particles within the grid; the work the boundaries and controls did on the material this step and
+        the energy check on the state it ended in (``cosim.conservation``)."""
+        s = self.system
+        self._check_domain(outputs["health"])
+        if self._tracked and s.step_index == 0 and self.tunnels is not None:
+            self.tunnels.reset()
+            self.passed_through = {}
+        if not self._tracked:
+            return
+        cons = self.conservation
+        for name, states in boundaries.items():
+            cons.add_work(s.mpm.boundaries[name].work(states, outputs["reactions"][name]))
+        if mpm_record.impulse is not None:
+            cons.add_work(control_work(mpm_record.impulse, mpm_record.state["v"], s.mpm.mass))
+        cons.end_step(s.step_index)
+
+    def end_step(self) -> None:
+        """After every engine stepped: their points within the grid, particles through rigid bodies."""
+        self._check_engine_domain()
+        if self.tunnels is not None and self._tracked:  # the bodies have moved too: their poses now end the step
+            self._check_tunnelling(self._poses)
+        self.max_cfl = max(self.max_cfl, self._cfl)
+
+    # ------------------------------------------------------------ the checks
+    def _check_limit(self, K: int) -> None:
+        st = self.system.stepping
+        if K > st.max_substeps:
+            raise SimulationError(
+                f"step {self.system.step_index}: the CFL bound needs {K} substeps, more than time.max_substeps = "
+                f"{st.max_substeps} (max speed {self._speed:.3g} m/s): the simulation is blowing up or "
+                "frame_dt is too long"
+            )
+
+    def _check_fixed_substeps(self, K: int) -> None:
+        """A fixed substep count was checked against the scene's materials at build; E or nu set since
+        (an optimisation, a gradient check) can move the stability bound dx / c past it."""
+        s = self.system
+        c, body = s.mpm.wave_speed()
+        dt = s.frame_dt / K
+        if dt * c > s.dx:
+            raise SimulationError(
+                f"step {s.step_index}: {K} fixed substeps give dt = {dt:.3g} s, above the stability bound "
+                f"dx / c = {s.dx / c:.3g} s of body '{body}' with its current E and nu (wave speed c = {c:.3g} "
+                "m/s, set after the build); bound E (optimize) or raise time.substeps"
+            )
+
+    def _check_finite(self, health: dict, K: int) -> None:
+        """Stop at the first body (in body order) whose particles hold a NaN or inf (``MPMEngine.health``),
+        naming the quantity (the first of v, x, F, C with one) and the substep of K it appeared in."""
+        names = {"x": "position", "v": "velocity", "F": "deformation gradient", "C": "affine velocity"}
+        for body, h in health.items():
+            key = next((k for k in ("v", "x", "F", "C") if h.non_finite[k]), None)
+            if key is None:
+                continue
+            first = K - 1 if h.first_bad is None else h.first_bad  # None: no G2P saw it (mpm_watch); the last substep
+            where = "in the state the step started from" if first < 0 else f"first in substep {first} (0-based) of {K}"
+            raise SimulationError(
+                f"step {self.system.step_index}: body '{body}': non-finite {names[key]} ({key}) in "
+                f"{h.non_finite[key]} particles, {where}; the step is unstable: lower time.frame_dt, use more "
+                "substeps or a smaller time.cfl, or check the material's E"
+            )
+
+    def _worst_cfl(self, health: dict, dt: float) -> tuple[float, str]:
+        """The largest CFL number max|v| dt / dx over the bodies and its body."""
+        worst, name = 0.0, ""
+        for body, h in health.items():
+            c = h.speed * dt / self.system.dx
+            if c > worst:
+                worst, name = c, body
+        return worst, name
+
+    def _check_domain(self, health: dict) -> None:
+        """Stop when a body has particles within a cell of the grid's faces or beyond."""
+        for body, h in health.items():
+            if h.outside:
+                raise SimulationError(
+                    f"step {self.system.step_index}: body '{body}': {h.outside} particles left the grid domain "
+                    f"[0, {self.system.domain.tolist()}] m; enable walls (mpm.boundary.type) or enlarge mpm.grid"
+                )
+
+    def _inside(self, points: np.ndarray) -> np.ndarray:
+        """(n,) bool: which world points (n, 3) [m] lie in the grid's box [0, domain] (NaN: outside)."""
+        domain = self.system.domain
+        p = np.asarray(points, dtype=np.float64)[:, : len(domain)]
+        return np.all((p >= 0.0) & (p <= domain), axis=1)
+
+    def _check_engine_domain(self) -> None:
+        """Stop when a rigid body's origin or a cloth vertex that started in the grid's box has left it (or is
+        no longer finite): nothing downstream would notice, and a run that threw a body away looked fine."""
+        s = self.system
+        for name, started_inside in self.watched_points.items():
+            engine = s.engines[name]
+            points = engine.points()
+            gone = np.flatnonzero(started_inside & ~self._inside(points))
+            if len(gone):
+                i = int(gone[0])
+                where = (
+                    "is not finite"
+                    if not np.all(np.isfinite(points[i]))
+                    else f"is at {np.round(points[i], 4).tolist()} m"
+                )
+                more = f" ({len(gone) - 1} more points too)" if len(gone) > 1 else ""
+                raise SimulationError(
+                    f"step {s.step_index}: engine '{name}': {engine.point_name(i)} left the grid domain "
+                    f"[0, {s.domain.tolist()}] m and {where}{more}; the coupled step is unstable there: a body "
+                    "much lighter than the material pushing it flutters under the once-per-frame exchange (make it "
+                    "heavier), or check the forces, joints and controls acting on it"
+                )
+
+    def _check_tunnelling(self, poses0: list) -> None:
+        """Count the particles that went through a rigid body this step, the bodies at ``poses0`` when it
+        began (``couplers.tunnelling``), into ``passed_through`` {"body/rigid body": count}; stop when a
+        body goes through, i.e. more than ``tunnel_share`` of its particles (at least ``TUNNEL_MIN``) in one
+        step: the contact failed."""
+        s = self.system
+        crossed = self.tunnels.step(poses0, s.rigid.poses())
+        for j, rigid_name in enumerate(s.rigid.names):
+            for i, (body, sl) in enumerate(s.slices.items()):
+                n = int(crossed[i, j])
+                if not n:
+                    continue
+                key = f"{body}/{rigid_name}"
+                self.passed_through[key] = self.passed_through.get(key, 0) + n
+                if n > max(TUNNEL_MIN, self.tunnel_share * (sl.stop - sl.start)):
+                    model = s.scene.contact.model if s.scene is not None else "?"
+                    others = " or ".join(m for m in ("forecast", "grid") if m != model)
+                    raise SimulationError(
+                        f"step {s.step_index}: {n} particles of body '{body}' went through rigid body "
+                        f"'{rigid_name}' (contact model '{model}'): the contact cannot stop them at this speed "
+                        f"and wall thickness; use contact.model {others}, a thicker wall or a smaller time.cfl"
+                        + (", or a larger contact.stiffness" if model == "particle" else "")
+                    )
