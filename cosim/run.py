@@ -134,6 +134,6 @@ def cloth_metrics(sim, cloth) -> dict:
     """Vertices, the last Newton solve, and how many particles sit on the wrong side of the sheet
     (traced ``inside``) at the end."""
     coupler = next(c for c in sim.couplers if c.engine == cloth.name and declares(c, "carried_state"))
-    tracking = coupler.state()
+    tracking = coupler.state()["tracking"]
     inside = 0 if tracking is None else int(np.count_nonzero(tracking["inside"]))
     return {"vertices": int(cloth.mesh.n_vertices), "last_solve": cloth.last_solve, "particles_inside": inside}

@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from cosim.engines.contract import add_states, declares
+from cosim.engines.contract import add_loads, add_states, declares
 from cosim.step_guard import StepGuard
 from cosim.step_record import StepRecord
 
@@ -208,28 +208,26 @@ class CoupledSystem:
         self.last = StepRecord(t0, mpm_record, engine_records, coupler_records, {"reactions": outputs["reactions"]})
         return self.last
 
-    def _forces(self, coupler_records: dict, reactions: dict) -> dict[str, Any]:
-        """{engine: the sum of its couplers' forces} from the MPM's reactions per boundary source."""
-        forces: dict[str, Any] = {}
+    def _forces(self, coupler_records: dict, reactions: dict) -> dict[str, dict]:
+        """{engine: the sum of its couplers' loads ({"forces", "added_mass"})} from the MPM's reactions."""
+        loads: dict[str, dict] = {}
         for c in self.couplers:
-            f = c.forces(coupler_records[c.name], reactions[c.source])
-            if f is not None:
-                forces[c.engine] = f if forces.get(c.engine) is None else forces[c.engine] + f
-        return forces
+            loads[c.engine] = add_loads(loads.get(c.engine), c.forces(coupler_records[c.name], reactions[c.source]))
+        return loads
 
-    def _step_engines(self, forces: dict[str, Any], actions: dict[str, np.ndarray] | None) -> dict[str, Any]:
+    def _step_engines(self, loads: dict[str, dict], actions: dict[str, np.ndarray] | None) -> dict[str, Any]:
         """Every manipulator engine's step in order, each with its action and forces; an engine's output
         "reactions" {later engine: forces} (a cloth pressing on DART links) adds to that engine's forces."""
         records, stepped = {}, set()
         for name, engine in self.engines.items():
             act = actions[name] if actions is not None and name in actions else self.action(name, self.step_index)
             with self._timed(name):
-                out, records[name] = engine.step({"action": act, "forces": forces.get(name)})
+                out, records[name] = engine.step({"action": act, **loads.get(name, {})})
             stepped.add(name)
             for target, f in (out.get("reactions") or {}).items():
                 if target in stepped:
                     raise RuntimeError(f"engine '{name}' hands forces to '{target}', which steps before it")
-                forces[target] = f if forces.get(target) is None else forces[target] + f
+                loads[target] = add_loads(loads.get(target), {"forces": f})
         return records
 
     def rollout(
@@ -277,20 +275,25 @@ class CoupledSystem:
         state_grads, action_grads, force_grads, material_grads = {}, {}, {}, {}
         for name in reversed(list(self.engines)):
             out = self.engines[name].vjp(record.engines[name], {"state": grad[name]})
-            state_grads[name], action_grads[name], force_grads[name] = out["state"], out["action"], out["forces"]
+            state_grads[name], action_grads[name] = out["state"], out["action"]
+            force_grads[name] = {"forces": out["forces"], "added_mass": out.get("added_mass")}  # dL/d(its load)
             if out.get("material"):
                 material_grads[name] = out["material"]
-        reaction_grads, carries = {}, {}
+        reaction_grads, carries, carried_grads = {}, {}, {}
+        after = grad.get("couplers") or {}  # dL/d(a coupler's own state after the step)
         for c in self.couplers:
-            g_forces = force_grads.get(c.engine)
-            reaction_grads[c.source], carries[c.name] = c.forces_vjp(record.couplers[c.name], g_forces)
+            g_forces = force_grads.get(c.engine, {})
+            reaction_grads[c.source], carries[c.name], carried_grads[c.name] = c.forces_vjp(
+                record.couplers[c.name], g_forces, after.get(c.name)
+            )
         reaction_grads = {k: v for k, v in reaction_grads.items() if v is not None}
         mpm = self.mpm.vjp(record.mpm, {"state": grad["mpm"], "reactions": reaction_grads})
         for c in self.couplers:
             g = c.boundary_vjp(record.couplers[c.name], mpm["boundaries"][c.source], carries[c.name])
             state_grads[c.engine] = add_states(state_grads[c.engine], g)
+        carried_grads = {name: g for name, g in carried_grads.items() if g is not None}
         return {
-            "state": {"mpm": mpm["state"], **state_grads},
+            "state": {"mpm": mpm["state"], **state_grads, **({"couplers": carried_grads} if carried_grads else {})},
             "action": action_grads,
             "impulse": mpm.get("impulse"),
             "material": {"mpm": {"E": mpm["E"], "nu": mpm["nu"]}, **material_grads},

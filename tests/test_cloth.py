@@ -23,19 +23,20 @@ def hanging_sheet(k_stretch=1000.0, res=(5, 5), **kw) -> ClothEngine:
 # ------------------------------------------------------------------------------------ 1. the adjoint
 
 
-def _rollout(engine, state0, actions, forces, material, steps):
+def _rollout(engine, state0, actions, forces, material, steps, added=None):
     engine.set_state(state0)
     engine.set_parameters(material)
     records = []
     for n in range(steps):
-        records.append(engine.step({"action": actions, "forces": forces})[1])
+        records.append(engine.step({"action": actions, "forces": forces, "added_mass": added})[1])
     return engine.state(), records
 
 
 def test_vjp_matches_central_differences_for_every_block():
-    """Every vjp block (x0, v0, action, forces, each material parameter) of a 2-step rollout against
-    central differences along a random direction, L = <wx, x_2> + <wv, v_2>. Newton tolerance 1e-13 of
-    the vertex weight (floored at round-off) so the differences resolve the converged map; rel. 1e-6."""
+    """Every vjp block (x0, v0, action, forces, a coupling's added mass, each material parameter) of a
+    2-step rollout with an added mass on some vertices against central differences along a random
+    direction, L = <wx, x_2> + <wv, v_2>. Newton tolerance 1e-13 of the vertex weight (floored at
+    round-off) so the differences resolve the converged map; rel. 1e-6."""
     rng = np.random.default_rng(7)
     mesh = cloth_mesh.rectangle((0.4, 0.4), (5, 5), normal="z")
     material = ClothMaterial(k_stretch=40.0, k_bend=2e-3, c_mass=0.5, density=0.3)
@@ -44,18 +45,19 @@ def test_vjp_matches_central_differences_for_every_block():
     state0 = {"x": mesh.vertices + 0.02 * rng.standard_normal((V, 3)), "v": 0.3 * rng.standard_normal((V, 3))}
     actions = 0.2 * rng.standard_normal(engine.action_size)
     forces = 0.05 * rng.standard_normal((V, 3))
+    added = np.where(rng.random(V) < 0.5, 0.0, 3.0 * engine.masses().max() * rng.random(V))  # heavier than the cloth
     mat0 = engine.material()
     wx, wv = rng.standard_normal((V, 3)), rng.standard_normal((V, 3))
     steps = 2
 
-    def loss(s0=state0, a=actions, f=forces, m=mat0):
-        final, records = _rollout(engine, s0, a, f, m, steps)
+    def loss(s0=state0, a=actions, f=forces, m=mat0, A=added):
+        final, records = _rollout(engine, s0, a, f, m, steps, A)
         return float(np.sum(wx * final["x"]) + np.sum(wv * final["v"])), records
 
     _, records = loss()
     assert np.all(np.abs(engine.energy.angles(records[-1].x_next)) > 1e-4), "bending must be active"
     grad_state = {"x": wx, "v": wv}
-    total = {"action": 0.0, "forces": 0.0, **{k: 0.0 for k in MATERIAL_KEYS}}
+    total = {"action": 0.0, "forces": 0.0, "added_mass": 0.0, **{k: 0.0 for k in MATERIAL_KEYS}}
     for rec in reversed(records):
         out = engine.vjp(rec, {"state": grad_state})
         grad_state = out["state"]
@@ -76,6 +78,9 @@ def test_vjp_matches_central_differences_for_every_block():
     d = rng.standard_normal(forces.shape)
     fd = (loss(f=forces + 1e-5 * d)[0] - loss(f=forces - 1e-5 * d)[0]) / 2e-5
     check("forces", float(np.sum(total["forces"] * d)), fd)
+    d = rng.random(V) * (added > 0)  # the added mass stays >= 0; a step of 1e-4 of its size (~1e-3 kg)
+    fd = (loss(A=added + 1e-7 * d)[0] - loss(A=added - 1e-7 * d)[0]) / 2e-7
+    check("added mass", float(np.sum(total["added_mass"] * d)), fd)
     for key in MATERIAL_KEYS:
         eps = 1e-5 * float(mat0[key])
         fd = (loss(m={**mat0, key: mat0[key] + eps})[0] - loss(m={**mat0, key: mat0[key] - eps})[0]) / (2 * eps)
@@ -344,7 +349,7 @@ def test_engine_conforms_to_the_contract():
     assert set(engine.material()) == set(MATERIAL_KEYS)
     _, record = engine.step({})
     out = engine.vjp(record, {"state": engine.state()})
-    assert set(out) == {"state", "action", "forces", "material"}
+    assert set(out) == {"state", "action", "forces", "added_mass", "material"}
     assert set(out["material"]) == set(MATERIAL_KEYS)
     assert all(np.shape(out["material"][k]) == np.shape(engine.material()[k]) for k in MATERIAL_KEYS)
 

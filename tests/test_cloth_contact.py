@@ -318,7 +318,7 @@ def run(engine, coupler, steps, K, dt):
         states, record = coupler.boundary(dt, K)
         out, _ = engine.step({"dt": dt, "substeps": K, "impulse": None, "boundaries": {coupler.source: states}})
         reactions = out["reactions"][coupler.source]
-        assert np.allclose(coupler.forces(record, reactions) * K * dt, reactions["impulse"])
+        assert np.allclose(coupler.forces(record, reactions)["forces"] * K * dt, reactions["impulse"])
         total = total + reactions["impulse"]
     return total
 
@@ -384,8 +384,10 @@ def test_the_sheet_stops_a_falling_block_only_with_tracing(model, trace):
 # ---------------------------------------------------------------------------- adjoints of the ti.funcs
 def test_source_gradients_match_central_differences():
     """dL/d(vertex positions), dL/d(vertex velocities) and dL/d(query points) of the probe loss (the
-    distance, normal and contact velocity every contact model reads, and the reactions they hand back)
-    against central differences (float64, eps 1e-6, random directions): relative error below 1e-6.
+    distance, normal and contact velocity every contact model reads, the reactions they hand back and
+    the added mass the forecast model's engagement gives each vertex, ``_contact_mass``) against central
+    differences (float64, eps 1e-7: the engagement's exponential blend makes eps 1e-6 truncation-bound at
+    2.8e-6, random directions): relative error below 1e-6.
     Points: particles above and (traced) below the face interior, beyond a free edge and a free
     corner (edge and vertex regions), look-ahead points of particles, and grid nodes near the sheet."""
     verts, faces = flat_sheet(4, 0.3, 0.7, jitter=0.01, seed=3)
@@ -394,6 +396,7 @@ def test_source_gradients_match_central_differences():
     )
     engine = mpm(particles)
     src = ClothBoundary(engine, verts, faces, band=0.06, requires_grad=True)
+    ForecastContact(engine, [src], friction=0.3)  # the engagement behind the added mass
     src.write(cloth_states(verts))
     src.before_substep(0, 0)
     tracking = src.tracer.state()
@@ -405,6 +408,7 @@ def test_source_gradients_match_central_differences():
     rng = np.random.default_rng(5)
     vel = rng.standard_normal(verts.shape)
     dps_np, W = rng.standard_normal((n, 3)) * 0.1, rng.standard_normal(verts.shape)
+    W_mass = rng.standard_normal(len(verts)) * 10.0
     pts, pid, dps = ti.Vector.field(3, float, n, needs_grad=True), ti.field(ti.i32, n), ti.Vector.field(3, float, n)
     out = ti.field(float, (), needs_grad=True)
     pid.from_numpy(pid_np)
@@ -416,20 +420,24 @@ def test_source_gradients_match_central_differences():
         pts.from_numpy(x)
         out[None] = 0.0
         _probe(src, 0, pts, pid, dps, out)
-        return out[None] + float((src.impulse.to_numpy() * W).sum())
+        src.contact_mass.fill(0)
+        src._contact_mass(0, 0, 1)  # substep 0 of a one-substep frame
+        mass = src.contact_mass.to_numpy()
+        return out[None] + float((src.impulse.to_numpy() * W).sum()) + float((mass * W_mass).sum())
 
     loss(verts, vel, pts_np)
     d = particle_distances(src, engine)
     assert d[0] > 0 and d[1] < 0 and np.all(d < 0.06)  # above, traced inside, near the edge and corner
+    assert np.count_nonzero(src.contact_mass.to_numpy()) >= 6  # the added mass reaches several vertices
     src.zero_grad()
     pts.grad.fill(0)
     out.grad[None] = 1.0
-    src.seed_reaction_grads({"impulse": W})
+    src.seed_reaction_grads({"impulse": W, "mass": W_mass})
     _probe.grad(src, 0, pts, pid, dps, out)
     src.before_substep_grad(0, 0)  # through each particle's blended frame
     grads = src.state_grads(1)
     g_pts = pts.grad.to_numpy()
-    eps = 1e-6
+    eps = 1e-7
     for which, g in (("x", grads["x"]), ("v", grads["v"]), ("pts", g_pts)):
         inputs = {"x": verts, "v": vel, "pts": pts_np}
         step = {which: rng.standard_normal(inputs[which].shape)}

@@ -128,7 +128,10 @@ def _check_finite(out: dict, n: int) -> None:
     first, so the first bad step met is where it starts), naming the macro step, engine and quantity."""
     from cosim.errors import SimulationError
 
-    groups = {f"{engine}.{key}": g for engine, grads in out["state"].items() for key, g in grads.items()}
+    groups = {}
+    for engine, grads in out["state"].items():  # "couplers": {coupler: {key: gradient}}
+        for key, g in grads.items():
+            groups.update({f"{key}.{k}": v for k, v in g.items()} if isinstance(g, dict) else {f"{engine}.{key}": g})
     groups.update({f"{engine}.action": g for engine, g in out["action"].items() if g is not None})
     for engine, grads in out["material"].items():
         groups.update({f"{engine}.{key}": g for key, g in grads.items()})

@@ -73,7 +73,7 @@ class ClothBoundary:
     """
 
     n = 1
-    capabilities = frozenset({"substep_hooks", "node_queries"})
+    capabilities = frozenset({"substep_hooks", "node_queries", "added_mass"})
 
     def __init__(
         self,
@@ -105,6 +105,9 @@ class ClothBoundary:
         V = len(verts)
         self.vel = field_pool.vector(self, 3, float, shape=V, needs_grad=grad)
         self.impulse = field_pool.vector(self, 3, float, shape=V, needs_grad=grad)
+        self.contact_mass = field_pool.scalar(self, float, shape=V, needs_grad=grad)
+        self.engagement = None  # the contact model that says how much material follows the sheet (forecast)
+        self._substeps = 1  # K of the step written last
         self.node_face = field_pool.scalar(self, ti.i32, shape=engine.nodes)
         # whether a contact model asks about grid nodes (p = -1; the grid model sets it): only then is each
         # node's nearest face queried in ``write`` (a cost the particle and forecast models need not pay)
@@ -286,6 +289,7 @@ class ClothBoundary:
         self.impulse.fill(0)
         self.tracer.mesh_moved(x)
         self.tracer.set_state(states.get("tracking"))
+        self._substeps = int(states.get("substeps", 1))
         if self.queries_nodes:
             self._query_nodes()
 
@@ -302,17 +306,53 @@ class ClothBoundary:
         return -float(np.sum(reactions["impulse"] * np.asarray(states["v"])))
 
     def reactions(self, K: int) -> dict:
-        """{"impulse": (V, 3) [N s] over the macro step, "tracking": the state after its last substep}."""
+        """{"impulse": (V, 3) [N s] over the macro step, "tracking": the state after its last substep,
+        "mass": (V,) [kg] the material that follows each vertex over the frame (``_contact_mass``; zeros
+        unless the contact model says how much: the forecast model)}."""
         self.tracer.trace(self.engine.slot, K, first=False, record=False)  # the last substep's motion
-        return {"impulse": self.impulse.to_numpy().astype(np.float64), "tracking": self.tracer.state()}
+        self.contact_mass.fill(0)
+        if self.engagement is not None:
+            self._contact_mass(K - 1, (K - 1) % self.slots, K)
+        return {
+            "impulse": self.impulse.to_numpy().astype(np.float64),
+            "tracking": self.tracer.state(),
+            "mass": self.contact_mass.to_numpy().astype(np.float64),
+        }
+
+    @ti.kernel
+    def _contact_mass(self, s: ti.i32, k: ti.i32, K: ti.i32):
+        """Each particle traced to the sheet in the last substep s adds its mass times the share the
+        contact model moves with the sheet over the frame (``engagement``) to the vertices of its contact
+        frame, with the frame's vertex weights: the added mass A (V,) [kg] of ``cosim.couplers.mpm_cloth``,
+        a smooth function of the particles' and the sheet's positions (its adjoint runs in the MPM's vjp)."""
+        ti.loop_config(serialize=self.engine.serial_particle_loops)
+        for p in range(self.engine.count[None]):  # k = s % slots (a statement outside the loop breaks autodiff)
+            if self.tracer.face_s[k, p] >= 0:
+                share = self.engagement.engagement(self.frame_d[k, p], K)
+                if share > 0:
+                    faces, weights = self._vertex_weights(s, self.frame_x[k, p], p)
+                    m = self.engine.mass_of(p) * share
+                    for j in ti.static(range(CANDIDATES)):
+                        if faces[j] >= 0:
+                            tri = self.query.faces[faces[j]]
+                            for i in ti.static(range(3)):
+                                self.contact_mass[tri[i]] += weights[j, i] * m
 
     def zero_grad(self) -> None:
         for fld in (self.query.verts, self.vel, self.impulse, self.frame_d, self.frame_n, self.frame_x, self.frame_w):
             fld.grad.fill(0)
+        self.contact_mass.grad.fill(0)
 
     def seed_reaction_grads(self, grads: dict[str, np.ndarray]) -> None:
-        """dL/d(impulse) (V, 3), after ``zero_grad``."""
+        """dL/d(impulse) (V, 3) and dL/d(mass) (V,), after ``zero_grad`` and before the substeps' adjoints:
+        the added mass's adjoint lands on the last substep's contact frames, which that substep's blend
+        adjoint carries on to the particles and the sheet."""
         self.impulse.grad.from_numpy(np.asarray(grads["impulse"], dtype=self.real))
+        g_mass = grads.get("mass")
+        if g_mass is not None and self.engagement is not None and np.any(g_mass):
+            self.contact_mass.grad.from_numpy(np.asarray(g_mass, dtype=self.real))
+            K = self._substeps
+            self._contact_mass.grad(K - 1, (K - 1) % self.slots, K)
 
     def state_grads(self, K: int) -> dict[str, np.ndarray]:
         """dL/dx, dL/dv (V, 3) of the cloth states written for the step, after a vjp."""

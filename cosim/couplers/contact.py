@@ -30,7 +30,7 @@ from cosim.couplers.contact_rules import (
     surface_offset,
 )
 from cosim.engines import field_pool
-from cosim.engines.contract import traits_of
+from cosim.engines.contract import declares, traits_of
 from cosim.engines.data_oriented import data_oriented
 
 
@@ -168,6 +168,9 @@ class ForecastContact:
         self.track_objective = False
         self.objective_terms: list[tuple[float, float]] = []
         self.upstream = engine.attach_grid_hook(self)
+        for source in self.sources:  # sources that report the mass their contact carries ask this model how much
+            if declares(source, "added_mass"):
+                source.engagement = self
 
     @ti.func
     def _within_threshold(self, s, x, p):
@@ -285,6 +288,19 @@ class ForecastContact:
                         g_x += grad_w * g_v_init.dot(self.upstream.velocity(g, node))
                         self.upstream.velocity_grad(g, node, weight * g_v_init)
                 e.x.grad[src, p] += g_x
+
+    @ti.func
+    def engagement(self, d, K):
+        """The share of a particle's mass that follows a sheet's velocity over a frame of K substeps when it
+        lies at traced distance d [m]: each substep's BC_p moves it alpha blend(d) of the way, so a change
+        of the sheet's velocity reaches 1 - (1 - alpha blend(d))^K of it (0 beyond the threshold). The
+        added mass of ``cosim.couplers.mpm_cloth`` sums it; measured against finite differences of the
+        reaction over a frame: within 5-20 % per vertex on cloth_catch and make_taco (an upper bound
+        while material separates from the sheet)."""
+        share = 0.0
+        if d < self.threshold:
+            share = 1.0 - ti.pow(1.0 - self.alpha * self.blend(d), K)
+        return share
 
     @ti.func
     def blend(self, d):

@@ -23,11 +23,11 @@ class MPMKinematicCoupler:
         """Poses and twists of the motions at the start of each substep of the current frame."""
         return kinematic_states(self.kinematic.motions, self.kinematic.time, dt, substeps), None
 
-    def forces(self, record: None, reactions: dict) -> None:
-        return None
+    def forces(self, record: None, reactions: dict) -> dict:
+        return {}
 
-    def forces_vjp(self, record: None, grad_forces: None) -> tuple[None, None]:
-        return None, None
+    def forces_vjp(self, record: None, grad_load: dict, grad_state: None = None) -> tuple[None, None, None]:
+        return None, None, None
 
     def boundary_vjp(self, record: None, grad_boundary: dict, carry: None) -> dict[str, np.ndarray]:
         return {"steps": np.zeros(1)}

@@ -155,24 +155,24 @@ class MPMRigidCoupler:
         record = CoupledRecord(self.rigid.flat_state(), bodies, dt, substeps)
         return {"pos": pos, "rot": rot, "vel": vel, "omega": omega}, record
 
-    def forces(self, record: CoupledRecord, reactions: dict) -> np.ndarray:
-        """Per-body wrenches (len(body_names), 6) for DART: the substep reactions averaged over the frame."""
+    def forces(self, record: CoupledRecord, reactions: dict) -> dict[str, np.ndarray]:
+        """{"forces": per-body wrenches (len(body_names), 6) for DART}: the substep reactions averaged over the frame."""
         K, dt = record.substeps, record.dt
         record.J, L = lift_reactions(reactions["impulse"], reactions["angular_impulse"], self.dim)
         record.pos_k = substep_origins(record.bodies, dt, K)
         wrenches = np.zeros((len(self.rigid.body_names), 6))
         wrenches[self.coupled] = average_wrench(record.J, L, record.pos_k, record.bodies.pos, K * dt)
-        return wrenches
+        return {"forces": wrenches}
 
-    def forces_vjp(self, record: CoupledRecord, grad_forces: np.ndarray) -> tuple[dict, tuple]:
+    def forces_vjp(self, record: CoupledRecord, grad_load: dict, grad_state: None = None) -> tuple:
         """dL/d(wrenches) -> dL/d(reactions) in the MPM's layout, and the torque arms' gradients
-        (dL/dp_k (K, m, 3), dL/dp (m, 3)) carried to ``boundary_vjp``."""
+        (dL/dp_k (K, m, 3), dL/dp (m, 3)) carried to ``boundary_vjp``; no state of its own (None)."""
         gJ, gL, gpk, gp = average_wrench_vjp(
-            grad_forces[self.coupled], record.J, record.pos_k, record.bodies.pos, record.substeps * record.dt
+            grad_load["forces"][self.coupled], record.J, record.pos_k, record.bodies.pos, record.substeps * record.dt
         )
         if self.dim == 2:
             gJ, gL = gJ[..., :2], gL[..., 2:]
-        return {"impulse": gJ, "angular_impulse": gL}, (gpk, gp)
+        return {"impulse": gJ, "angular_impulse": gL}, (gpk, gp), None
 
     def boundary_vjp(self, record: CoupledRecord, grad_boundary: dict, carry: tuple) -> dict[str, np.ndarray]:
         """dL/ds_D^n (the engine's state layout) through the boundary states and the torque arms."""

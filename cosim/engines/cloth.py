@@ -100,6 +100,7 @@ class ClothRecord:
     residual: float  # [N] ||grad E||_inf at the accepted iterate
     tolerance: float  # [N]
     contacts: ContactSet | None = None
+    added_mass: np.ndarray | None = None  # (V,) [kg] inertia the coupling added to the step (None: none)
 
     @property
     def nbytes(self) -> int:
@@ -115,7 +116,9 @@ class _Step:
     forces: np.ndarray
     material: ClothMaterial
     contacts: ContactSet | None = None  # planes of rigid bodies this step (``attach_rigid_contact``)
-    mass: np.ndarray = field(init=False)
+    added_mass: np.ndarray | None = None  # (V,) [kg] from the coupling, in the inertia only
+    mass: np.ndarray = field(init=False)  # (V, 1) [kg] lumped: gravity, damping
+    inertia: np.ndarray = field(init=False)  # (V, 1) [kg] mass + added mass: the inertia term
 
 
 class ClothEngine(ClothAdjoint):
@@ -245,17 +248,19 @@ class ClothEngine(ClothAdjoint):
         return out
 
     def step(self, inputs: dict) -> tuple[dict, ClothRecord]:
-        """One frame: ``inputs`` action (groups * 3,) [m/s] or None, forces (V, 3) [N] or None.
-        Returns ({"state": state after}, record)."""
+        """One frame: ``inputs`` action (groups * 3,) [m/s] or None, forces (V, 3) [N] or None,
+        added_mass (V,) [kg] or None: a coupling's added mass, in the inertia term only (M + A)(v' - v) / h
+        (``cosim.couplers.mpm_cloth``). Returns ({"state": state after}, record)."""
         action, forces = self._inputs(inputs.get("action"), inputs.get("forces"))
+        added = self._added_mass(inputs.get("added_mass"))
         x_n, v_n, mat = self.x, self.v, self._material
-        data = self._step_data(x_n, v_n, forces, mat)
+        data = self._step_data(x_n, v_n, forces, mat, added)
         if self.contact is not None:
             data.contacts = self.contact.prepare(x_n)
         x_next, iterations, residual, tol = self._solve(data, self._prescribed_next(x_n, action))
         v_next = (x_next - x_n) / self.frame_dt
         record = ClothRecord(
-            self.steps, x_n, v_n, action, forces, x_next, v_next, mat, iterations, residual, tol, data.contacts
+            self.steps, x_n, v_n, action, forces, x_next, v_next, mat, iterations, residual, tol, data.contacts, added
         )
         self.last_solve = {"step": self.steps, "iterations": iterations, "residual": residual, "tolerance": tol}
         self.x, self.v = x_next, v_next
@@ -279,6 +284,15 @@ class ClothEngine(ClothAdjoint):
             raise InputError(f"cloth '{self.name}': action or forces contain non-finite values")
         return action, forces
 
+    def _added_mass(self, added) -> np.ndarray | None:
+        if added is None:
+            return None
+        added = np.asarray(added, dtype=np.float64)
+        V = self.mesh.n_vertices
+        if added.shape != (V,) or not np.all(np.isfinite(added)) or np.any(added < 0):
+            raise InputError(f"cloth '{self.name}': added_mass must be ({V},) finite and >= 0 [kg]")
+        return added if np.any(added > 0) else None
+
     # ------------------------------------------------------------------------------------- the solve
 
     def masses(self, density: float | None = None) -> np.ndarray:
@@ -290,9 +304,10 @@ class ClothEngine(ClothAdjoint):
         mem, bend = self.energy.energies(x)
         return self._material.k_stretch * mem + self._material.k_bend * bend
 
-    def _step_data(self, x_n, v_n, forces, mat: ClothMaterial) -> _Step:
-        data = _Step(x_n, x_n + self.frame_dt * v_n, forces, mat)
+    def _step_data(self, x_n, v_n, forces, mat: ClothMaterial, added: np.ndarray | None = None) -> _Step:
+        data = _Step(x_n, x_n + self.frame_dt * v_n, forces, mat, added_mass=added)
         data.mass = self.masses(mat.density)[:, None]
+        data.inertia = data.mass if added is None else data.mass + added[:, None]
         return data
 
     def _prescribed_next(self, x_n: np.ndarray, action: np.ndarray) -> np.ndarray:
@@ -308,13 +323,13 @@ class ClothEngine(ClothAdjoint):
         I1 + 2 sqrt(I1 + 2J) + 2 ~ 8 per unit area for the membrane, |f| |x| for the loads)."""
         h, mat = self.frame_dt, d.material
         dx_hat, dx_n = x - d.x_hat, x - d.x_n
-        inertia = 0.5 * np.sum(d.mass * dx_hat**2) / h**2 + 0.5 * mat.c_mass * np.sum(d.mass * dx_n**2) / h
+        inertia = 0.5 * np.sum(d.inertia * dx_hat**2) / h**2 + 0.5 * mat.c_mass * np.sum(d.mass * dx_n**2) / h
         mem, bend = self.energy.energies(x)
         external = -np.sum(d.forces * x) - np.sum(d.mass * self.gravity * x)
         contact = self.contact.energy(x, d.contacts) if d.contacts is not None else 0.0
         size = np.abs(x) + np.abs(d.x_hat)
         gross = (
-            np.sum(d.mass * np.abs(dx_hat) * size) / h**2
+            np.sum(d.inertia * np.abs(dx_hat) * size) / h**2
             + mat.c_mass * np.sum(d.mass * np.abs(dx_n) * size) / h
             + mat.k_stretch * (8 * self._area + mem)
             + mat.k_bend * bend
@@ -329,7 +344,7 @@ class ClothEngine(ClothAdjoint):
         """grad E (V, 3) [N]."""
         h, mat = self.frame_dt, d.material
         g_mem, g_bend = self.energy.gradients(x)
-        inertia = d.mass * ((x - d.x_hat) / h**2 + mat.c_mass * (x - d.x_n) / h - self.gravity)
+        inertia = d.inertia * (x - d.x_hat) / h**2 + d.mass * (mat.c_mass * (x - d.x_n) / h - self.gravity)
         g = inertia + mat.k_stretch * g_mem + mat.k_bend * g_bend - d.forces
         if d.contacts is not None:
             g += self.contact.gradient(x, d.contacts)
@@ -348,18 +363,19 @@ class ClothEngine(ClothAdjoint):
             face = face + self.contact.face_hessians(x, contacts, len(self.mesh.faces))
         return np.concatenate([face.ravel(), mat.k_bend * H_bend.ravel()])
 
-    def _mass_diagonal(self, mat: ClothMaterial) -> np.ndarray:
-        """Diagonal of d^2 E / dx^2 from inertia and damping, over the free dofs."""
-        m = np.repeat(self.masses(mat.density), 3)[self.free_dofs]
+    def _mass_diagonal(self, mat: ClothMaterial, added: np.ndarray | None = None) -> np.ndarray:
+        """Diagonal of d^2 E / dx^2 from inertia (with ``added`` (V,) [kg]) and damping, over the free dofs."""
+        m = self.masses(mat.density)
+        inertia = m if added is None else m + added
         h = self.frame_dt
-        return m / h**2 + mat.c_mass * m / h
+        return np.repeat(inertia / h**2 + mat.c_mass * m / h, 3)[self.free_dofs]
 
     def _tolerance(self, d: _Step) -> float:
         mat = d.material
-        m_max = float(d.mass.max())
+        m_max, i_max = float(d.mass.max()), float(d.inertia.max())
         h = self.frame_dt
         wanted = self.rtol * (m_max * G_REF + float(np.abs(d.forces).max()))
-        stiffness = m_max * (1 + mat.c_mass * h) / h**2 + 8 * mat.k_stretch + 8 * mat.k_bend / self._l_min**2
+        stiffness = (i_max + m_max * mat.c_mass * h) / h**2 + 8 * mat.k_stretch + 8 * mat.k_bend / self._l_min**2
         if d.contacts is not None and len(d.contacts.stiffness):  # active penalty springs (~100 m / h^2)
             stiffness += float(d.contacts.stiffness.max())
         floor = 64 * np.finfo(np.float64).eps * (float(np.abs(d.x_n).max()) + self._size) * stiffness
@@ -401,7 +417,7 @@ class ClothEngine(ClothAdjoint):
         definite (then Newton converges quadratically), else with the per-element PSD-projected one
         (always a descent direction, and the stiffer model where elements are compressed or bent; alone
         it converges only linearly once the exact Hessian would do)."""
-        diagonal = self._mass_diagonal(d.material)
+        diagonal = self._mass_diagonal(d.material, d.added_mass)
         for project in (False, True) if exact else (True,):
             entries = self._element_hessians(x, d.material, d.contacts, project)
             lu = splu(self._ff.matrix(entries, diagonal), **SPD_LU)

@@ -6,14 +6,15 @@ theorem gives dx_f/dp = -H_ff^-1 dG/dp with H the exact (unprojected) Hessian of
 L's adjoints gx = dL/dx_{n+1}, gv = dL/dv_{n+1} and v_{n+1} = (x_{n+1} - x_n)/h, the total adjoint
 of x_{n+1} is gbar = gx + gv / h, and one solve H_ff lam = gbar_f gives (m the lumped masses):
 
-    dL/dx_n  free: -gv/h + lam m (1/h^2 + c_m/h);  prescribed: gx_p - (H_pf lam)   (x_p moves with x_n,p)
-    dL/dv_n  free: lam m / h;                       prescribed: 0
+    dL/dx_n  free: -gv/h + lam (M/h^2 + m c_m/h);  prescribed: gx_p - (H_pf lam)   (x_p moves with x_n,p)
+    dL/dv_n  free: lam M / h;                       prescribed: 0
     dL/da_g  = h sum_{i in group g} (gbar_i - (H_pf lam)_i)
     dL/df    free: lam;  prescribed: 0 (a force on a prescribed vertex does not move anything)
     dL/dk_stretch = -lam . grad Psi_membrane(unit),  dL/dk_bend = -lam . grad Psi_bending(unit)
     dL/dc_mass = -lam . m v_{n+1},   dL/ddensity = -lam . a_v ((x - x^)/h^2 + c_m v_{n+1} - g)
 
-(a_v the vertex areas). H_ff may be indefinite (the unprojected Hessian of a buckled cloth): it is
+(a_v the vertex areas; M = m + A the inertia with a coupling's added mass A, an input that is piecewise
+constant in the state and so carries no gradient: ``cosim.couplers.mpm_cloth``). H_ff may be indefinite (the unprojected Hessian of a buckled cloth): it is
 factorised by a symmetric-mode LU when it is positive definite, else by LU with partial pivoting; an exactly singular H_ff raises ``SimulationError``. The
 mixin reads the engine's ``frame_dt``, ``gravity``, ``free``, ``free_dofs``, ``pres_dofs``,
 ``ctrl_vertex``, ``ctrl_group``, ``controls``, ``energy``, ``_ff``, ``_pf`` and helpers.
@@ -50,7 +51,7 @@ class ClothAdjoint:
         coupling = np.zeros(3 * V)
         if len(self.free_dofs):
             entries = self._element_hessians(record.x_next, mat, record.contacts)
-            H = self._ff.matrix(entries, self._mass_diagonal(mat))
+            H = self._ff.matrix(entries, self._mass_diagonal(mat, record.added_mass))
             try:
                 lu = splu(H, **SPD_LU)  # the usual case, and faster than pivoting
                 if not _positive_definite(lu):
@@ -64,16 +65,20 @@ class ClothAdjoint:
             coupling[self.pres_dofs] = self._pf.matrix(entries) @ lam[self.free_dofs]
         lam, coupling = lam.reshape(V, 3), coupling.reshape(V, 3)
         m = self.masses(mat.density)[:, None]
+        inertia = m if record.added_mass is None else m + record.added_mass[:, None]
         free = self.free[:, None]
-        grad_x = np.where(free, -gv / h + lam * m * (1 / h**2 + mat.c_mass / h), gx - coupling)
-        grad_v = np.where(free, lam * m / h, 0.0)
+        grad_x = np.where(free, -gv / h + lam * (inertia / h**2 + m * mat.c_mass / h), gx - coupling)
+        grad_v = np.where(free, lam * inertia / h, 0.0)
         through_prescribed = gbar - coupling
         grad_action = np.zeros((len(self.controls), 3))
         np.add.at(grad_action, self.ctrl_group, h * through_prescribed[self.ctrl_vertex])
         g_mem, g_bend = self.energy.gradients(record.x_next)
         x_hat = record.x + h * record.v
         accel = (record.x_next - x_hat) / h**2 + mat.c_mass * record.v_next - self.gravity
+        # dG/dA_v = (x - x^)_v / h^2 per coordinate: dL/dA = -lam . (x - x^) / h^2 per vertex (free vertices)
+        grad_added = -np.sum(np.where(free, lam, 0.0) * (record.x_next - x_hat), axis=1) / h**2
         return {
+            "added_mass": grad_added,
             "state": {"x": grad_x, "v": grad_v},
             "action": grad_action.reshape(-1),
             "forces": lam.copy(),

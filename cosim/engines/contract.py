@@ -33,9 +33,10 @@ The soft-body engine (MPM, ``cosim.engines.mpm.MPMEngine``, name ``"mpm"``):
 A manipulator engine (DART ``RigidEngine`` "dart", ``KinematicEngine`` "kinematic", ``ClothEngine`` by its name):
     inputs    action (A,) (layout per engine; None: zeros), forces (engine-specific
               external forces, e.g. DART: (bodies, 6) wrenches [torque; force] in the
-              world frame, torque about the body origin [N m; N]).
+              world frame, torque about the body origin [N m; N]), added_mass (a coupling's
+              added mass, the cloth: (V,) [kg] in its inertia; None: none).
     outputs   state (after the step).
-    vjp       {state} -> {state, action, forces}.
+    vjp       {state} -> {state, action, forces} (and added_mass where it takes one).
 
 Boundary states and reactions (the MPM's side of a coupling)
 --------------------------------------------------------------
@@ -59,10 +60,14 @@ Couplers
 A coupler joins one manipulator engine (``engine``) to the MPM through one boundary
 source (``source``). Forward, per macro step: ``boundary(dt, K)`` turns the engine's
 current state into BoundaryStates for the K substeps; after the MPM step,
-``forces(record, reactions)`` turns that source's reactions into the engine's external
-forces. Reverse: ``forces_vjp(record, grad_forces) -> (grad_reactions, carry)`` before
-the MPM's vjp, ``boundary_vjp(record, grad_boundary, carry) -> grad_engine_state`` after
-it (``carry``: what the force path contributes to the engine state, e.g. torque arms).
+``forces(record, reactions)`` turns that source's reactions into the engine's load
+{"forces", "added_mass"} (each optional; ``add_loads`` sums several couplers'). Reverse:
+``forces_vjp(record, grad_load, grad_state) -> (grad_reactions, carry, grad_state_before)``
+before the MPM's vjp (``grad_state``: dL/d(the coupler's own carried state after the step),
+None for couplers without one), ``boundary_vjp(record, grad_boundary, carry) ->
+grad_engine_state`` after it (``carry``: what the force path contributes to the engine
+state, e.g. torque arms). A coupler's carried state takes part in the chain rule: the
+system's vjp reads its adjoint under "couplers" and returns the one before the step.
 
 The loop (``cosim.system.CoupledSystem``), as in the paper's chain rule::
 
@@ -142,9 +147,9 @@ class Coupler(Protocol):
 
     def boundary(self, dt: float, substeps: int) -> tuple[BoundaryStates, Any]: ...
 
-    def forces(self, record: Any, reactions: Reactions) -> Any: ...
+    def forces(self, record: Any, reactions: Reactions) -> dict[str, Any]: ...
 
-    def forces_vjp(self, record: Any, grad_forces: Any) -> tuple[Reactions, Any]: ...
+    def forces_vjp(self, record: Any, grad_load: dict[str, Any], grad_state: Any = None) -> tuple[Any, Any, Any]: ...
 
     def boundary_vjp(self, record: Any, grad_boundary: BoundaryStates, carry: Any) -> State: ...
 
@@ -163,6 +168,8 @@ CAPABILITIES = {
     "penetration tracing), part of the system's state under 'couplers'",
     # boundary sources
     "substep_hooks": "before_substep(src, s) and before_substep_grad(src, s) around each MPM substep",
+    "added_mass": "its reactions carry 'mass' (V,) [kg], the material that follows it over a frame, from the "
+    "contact model set as its engagement (engagement(d, K), ti.func); its reaction adjoint takes dL/d(mass)",
     "node_queries": "a queries_nodes flag: while True it answers about grid nodes (p = -1), which the grid model asks",
 }
 
@@ -201,6 +208,14 @@ class ContactTraits:
 
 
 SOLID = ContactTraits()
+
+
+def add_loads(a: dict[str, np.ndarray] | None, b: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Sum of two engine loads ({"forces", "added_mass"}, each optional): what couplers hand one engine."""
+    out = dict(a or {})
+    for key, value in b.items():
+        out[key] = value if out.get(key) is None else out[key] + value
+    return out
 
 
 def add_states(a: State | None, b: State | None) -> State | None:
