@@ -31,7 +31,8 @@ Lumped mass: density * one third of each adjacent face's rest area. Fixed vertic
 position; controlled vertices move in groups, x_{n+1} = x_n + h a_g with one velocity a_g [m/s]
 per group (action layout (groups * 3,), group-major; None: zeros); both are eliminated from the
 solve (prescribed positions). External forces ``forces`` (V, 3) [N] are constant over the step
-(None: zeros); on prescribed vertices they do nothing.
+(None: zeros; nothing on prescribed vertices); a coupling's ``added_mass`` A (V,) [kg] joins the
+inertia term only, (m + A)(v_{n+1} - v_n) / h, not gravity or damping (``cosim.couplers.mpm_cloth``).
 
 Newton: the search direction uses the exact Hessian when its free block is positive definite (read
 off the pivots of a symmetric-mode LU), else the per-element Hessians projected to PSD (batched
@@ -116,9 +117,9 @@ class _Step:
     forces: np.ndarray
     material: ClothMaterial
     contacts: ContactSet | None = None  # planes of rigid bodies this step (``attach_rigid_contact``)
-    added_mass: np.ndarray | None = None  # (V,) [kg] from the coupling, in the inertia only
-    mass: np.ndarray = field(init=False)  # (V, 1) [kg] lumped: gravity, damping
-    inertia: np.ndarray = field(init=False)  # (V, 1) [kg] mass + added mass: the inertia term
+    added_mass: np.ndarray | None = None  # (V,) [kg] from the coupling
+    mass: np.ndarray = field(init=False)  # (V, 1) [kg] lumped (gravity, damping); inertia: + added mass
+    inertia: np.ndarray = field(init=False)
 
 
 class ClothEngine(ClothAdjoint):
@@ -193,7 +194,6 @@ class ClothEngine(ClothAdjoint):
         return idx
 
     # ------------------------------------------------------------------------------------- the contract
-
     @property
     def action_size(self) -> int:
         return 3 * len(self.controls)
@@ -202,8 +202,7 @@ class ClothEngine(ClothAdjoint):
         """``x`` (V, 3) [m] vertex positions, ``v`` (V, 3) [m/s] velocities (copies)."""
         return {"x": self.x.copy(), "v": self.v.copy()}
 
-    def points(self) -> np.ndarray:
-        """(V, 3) [m] the vertices, which must stay in the MPM's domain."""
+    def points(self) -> np.ndarray:  # the vertices must stay in the MPM's domain
         return self.x
 
     def point_name(self, i: int) -> str:
@@ -248,11 +247,9 @@ class ClothEngine(ClothAdjoint):
         return out
 
     def step(self, inputs: dict) -> tuple[dict, ClothRecord]:
-        """One frame: ``inputs`` action (groups * 3,) [m/s] or None, forces (V, 3) [N] or None,
-        added_mass (V,) [kg] or None: a coupling's added mass, in the inertia term only (M + A)(v' - v) / h
-        (``cosim.couplers.mpm_cloth``). Returns ({"state": state after}, record)."""
-        action, forces = self._inputs(inputs.get("action"), inputs.get("forces"))
-        added = self._added_mass(inputs.get("added_mass"))
+        """One frame: ``inputs`` action, forces, added_mass (each None or see the module docstring).
+        Returns ({"state": state after}, record)."""
+        action, forces, added = self._inputs(inputs.get("action"), inputs.get("forces"), inputs.get("added_mass"))
         x_n, v_n, mat = self.x, self.v, self._material
         data = self._step_data(x_n, v_n, forces, mat, added)
         if self.contact is not None:
@@ -270,28 +267,23 @@ class ClothEngine(ClothAdjoint):
             outputs["reactions"] = self._route(lambda origins: self.contact.wrenches(x_next, data.contacts, origins))
         return outputs, record
 
-    def _inputs(self, action, forces) -> tuple[np.ndarray, np.ndarray]:
-        V = self.mesh.n_vertices
+    def _inputs(self, action, forces, added=None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """(action, forces, added mass or None where it is all zero), checked."""
+        V, name = self.mesh.n_vertices, f"cloth '{self.name}'"
         action = np.zeros(self.action_size) if action is None else np.asarray(action, dtype=np.float64).reshape(-1)
         if action.shape != (self.action_size,):
             raise InputError(
-                f"cloth '{self.name}': action must have length {self.action_size} (3 per control group), got {action.size}"
+                f"{name}: action must have length {self.action_size} (3 per control group), got {action.size}"
             )
         forces = np.zeros((V, 3)) if forces is None else np.asarray(forces, dtype=np.float64)
         if forces.shape != (V, 3):
-            raise InputError(f"cloth '{self.name}': forces must have shape ({V}, 3) [N], got {forces.shape}")
-        if not (np.all(np.isfinite(action)) and np.all(np.isfinite(forces))):
-            raise InputError(f"cloth '{self.name}': action or forces contain non-finite values")
-        return action, forces
-
-    def _added_mass(self, added) -> np.ndarray | None:
-        if added is None:
-            return None
-        added = np.asarray(added, dtype=np.float64)
-        V = self.mesh.n_vertices
-        if added.shape != (V,) or not np.all(np.isfinite(added)) or np.any(added < 0):
-            raise InputError(f"cloth '{self.name}': added_mass must be ({V},) finite and >= 0 [kg]")
-        return added if np.any(added > 0) else None
+            raise InputError(f"{name}: forces must have shape ({V}, 3) [N], got {forces.shape}")
+        added = np.zeros(V) if added is None else np.asarray(added, dtype=np.float64)
+        if added.shape != (V,) or np.any(added < 0):
+            raise InputError(f"{name}: added_mass must have shape ({V},) and be >= 0 [kg], got {added.shape}")
+        if not (np.all(np.isfinite(action)) and np.all(np.isfinite(forces)) and np.all(np.isfinite(added))):
+            raise InputError(f"{name}: action, forces or added_mass contain non-finite values")
+        return action, forces, (added if np.any(added > 0) else None)
 
     # ------------------------------------------------------------------------------------- the solve
 
