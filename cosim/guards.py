@@ -1,7 +1,7 @@
 """The runner's guards a command runs without, said once in its output and in its reports.
 
 Every step through ``CoupledSystem.step`` (`cosim run`, gradcheck, optimize, sweep and most benchmarks)
-stops the run at a NaN or inf (NaN), a CFL number above ``time.cfl`` (CFL), particles leaving the grid
+stops the run at a NaN or inf (NaN), a CFL number above ``time.cfl`` (CFL), particles, bodies or cloth leaving the grid
 (domain), energy above the budget (energy budget, ``cosim.conservation``) and a rigid body gone
 through (tunnelling). A command that turns some off, or times an engine stepped alone (none of them
 run there), declares a ``GuardsOff``: ``announce`` prints its line, reports put it under their header
