@@ -31,10 +31,11 @@ summed per vertex (``ClothBoundary._contact_mass``, ``ForecastContact.engagement
 within 5-20 % of dJ/dv_b per vertex on cloth_catch and make_taco; with it both
 damp a perturbation (0.97-0.98x per frame) and their full-horizon gradients pass
 (3.7e-7 and 2.2e-8). Other contact models give no engagement yet: A = 0, the
-explicit exchange. Known defect: the sheet's contact has no thickness and the
-material follows v^n while the sheet moves with v^{n+1}, so the sheet can pass resting
-particles by a fraction of a millimetre; in cloth_catch 22 of 500 end traced inside
-(19 of them back above the sheet).
+explicit exchange. Known defect: the sheet is frozen at x^n over the substeps while its
+contact velocity is v_b, so material that follows a sagging sheet crosses that frozen
+position by up to T |v_b| per frame (cloth_catch, towel sagging at ~1 m/s from step 100:
+22 of 500 particles end traced inside, most back above the moved sheet); the fix is to
+move the sheet with v_b over the substeps.
 
 The coupler's state carries A^{n-1} (V,) [kg] and v_b^{n-1} (V, 3) [m/s] from step to
 step, with the penetration tracing's per-particle state (``state`` / ``set_state``).
