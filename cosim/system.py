@@ -200,15 +200,15 @@ class CoupledSystem:
             K = retry
         guard.after_material(mpm_record, boundaries, outputs)
         coupler_records = {name: record for name, (_states, record) in exchange.items()}
-        with self._timed("couplers"):  # reactions -> each engine's external forces
-            forces = self._forces(coupler_records, outputs["reactions"])
-        engine_records = self._step_engines(forces, actions)
+        with self._timed("couplers"):  # reactions -> each engine's load (forces, added mass)
+            loads = self._loads(coupler_records, outputs["reactions"])
+        engine_records = self._step_engines(loads, actions)
         guard.end_step()
         self.step_index += 1
         self.last = StepRecord(t0, mpm_record, engine_records, coupler_records, {"reactions": outputs["reactions"]})
         return self.last
 
-    def _forces(self, coupler_records: dict, reactions: dict) -> dict[str, dict]:
+    def _loads(self, coupler_records: dict, reactions: dict) -> dict[str, dict]:
         """{engine: the sum of its couplers' loads ({"forces", "added_mass"})} from the MPM's reactions."""
         loads: dict[str, dict] = {}
         for c in self.couplers:

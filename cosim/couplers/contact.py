@@ -294,9 +294,8 @@ class ForecastContact:
         """The share of a particle's mass that follows a sheet's velocity over a frame of K substeps when it
         lies at traced distance d [m]: each substep's BC_p moves it alpha blend(d) of the way, so a change
         of the sheet's velocity reaches 1 - (1 - alpha blend(d))^K of it (0 beyond the threshold). The
-        added mass of ``cosim.couplers.mpm_cloth`` sums it; measured against finite differences of the
-        reaction over a frame: within 5-20 % per vertex on cloth_catch and make_taco (an upper bound
-        while material separates from the sheet)."""
+        added mass of ``cosim.couplers.mpm_cloth`` sums it. It counts approaching and separating material
+        alike, so it is an upper bound while material leaves the sheet (whose BC then does not act)."""
         share = 0.0
         if d < self.threshold:
             share = 1.0 - ti.pow(1.0 - self.alpha * self.blend(d), K)

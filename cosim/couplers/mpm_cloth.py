@@ -9,11 +9,9 @@ Why not just F = J^n / T (the explicit exchange): the material the contact moves
 mass A per vertex, leaves the step at the sheet's old velocity v^n while the sheet
 moves on to v^{n+1}, and the next step's reaction drags the sheet back by
 A (v^{n+1} - v^n): on a model problem a perturbation of the sheet's velocity is
-multiplied by -A / m per frame (m the vertex mass), however short the frame. Measured
-with it: cloth_catch's towel jumped by up to 13.8 m/s in a frame (a 1e-4 m/s
-perturbation grew 1.18x per frame) and its 120-step gradient was 0.97 off; make_taco
-with a 1000 kg/m^3 filling grew 1.09x per frame. So the reaction enters linearised, as
-a mass: the material that followed v_b follows the sheet to v^{n+1} too, which costs
+multiplied by -A / m per frame (m the vertex mass), however short the frame: a sheet
+carrying material heavier than itself flutters, and gradients over long contacts are
+noise. So the reaction enters linearised, as a mass: the material that followed v_b follows the sheet to v^{n+1} too, which costs
 A (v^{n+1} - v_b) of momentum:
 
     (m + A^n)(v^{n+1} - v^n) = T f_cloth + J^n + A^{n-1}(v^n - v_b^{n-1})
@@ -24,17 +22,15 @@ includes the catch-up -A^{n-1}(v^n - v_b^{n-1})), so the momentum the sheet rece
 over a run is exactly the MPM's reactions, delayed by a step. On the model problem
 (material of mass A_true in inelastic contact) a perturbation is multiplied by
 (A - A_true) / (m + A) per frame: 0 with A = A_true, of modulus below one for any
-A > (A_true - m) / 2. So A must be the material's actual response: the counted mass
-within a band of the sheet was 1.5-12x the finite-difference sensitivity dJ/dv_b of
-a frame and left the exchange unstable. A^n is the forecast model's engagement
-summed per vertex (``ClothBoundary._contact_mass``, ``ForecastContact.engagement``):
-within 5-20 % of dJ/dv_b per vertex on cloth_catch and make_taco; with it both
-damp a perturbation (0.97-0.98x per frame) and their full-horizon gradients pass
-(3.7e-7 and 2.2e-8). Other contact models give no engagement yet: A = 0, the
-explicit exchange. Known defect: the sheet is frozen at x^n over the substeps while its
-contact velocity is v_b, so material that follows a sagging sheet crosses that frozen
-position by up to T |v_b| per frame (cloth_catch, towel sagging at ~1 m/s from step 100:
-22 of 500 particles end traced inside, most back above the moved sheet); the fix is to
+A > (A_true - m) / 2. So A must be the material's actual response to the sheet's
+velocity over a frame, dJ/dv_b, not the mass merely near the sheet (much of which the
+contact moves only partly within a frame). A^n is the contact model's engagement
+summed per vertex (``ClothBoundary._contact_mass``, ``ForecastContact.engagement``),
+which follows how far each substep's contact moves a particle towards the sheet's
+velocity. Other contact models give no engagement yet: A = 0, the explicit exchange.
+Known defect: the sheet is frozen at x^n over the substeps while its contact velocity
+is v_b, so material that follows a moving sheet crosses that frozen position by up to
+T |v_b| per frame (and is traced inside until it is back on its side); the fix is to
 move the sheet with v_b over the substeps.
 
 The coupler's state carries A^{n-1} (V,) [kg] and v_b^{n-1} (V, 3) [m/s] from step to

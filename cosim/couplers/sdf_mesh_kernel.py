@@ -6,7 +6,9 @@ import taichi as ti
 
 @ti.func
 def _closest_on_triangle(p, a, b, c):
-    """Closest point to p on triangle abc (Ericson, Real-Time Collision Detection 5.1.5)."""
+    """Closest point to p on triangle abc (Ericson, Real-Time Collision Detection 5.1.5). Not
+    ``cloth_mesh_query.closest_point_on_triangle``: that one builds its barycentrics in the session's
+    float type, and the SDF is computed in float64 whatever the scene's precision."""
     ab, ac, ap = b - a, c - a, p - a
     d1, d2 = ab.dot(ap), ac.dot(ap)
     result = a

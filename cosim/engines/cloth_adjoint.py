@@ -13,8 +13,9 @@ of x_{n+1} is gbar = gx + gv / h, and one solve H_ff lam = gbar_f gives (m the l
     dL/dk_stretch = -lam . grad Psi_membrane(unit),  dL/dk_bend = -lam . grad Psi_bending(unit)
     dL/dc_mass = -lam . m v_{n+1},   dL/ddensity = -lam . a_v ((x - x^)/h^2 + c_m v_{n+1} - g)
 
-(a_v the vertex areas; M = m + A the inertia with a coupling's added mass A, an input that is piecewise
-constant in the state and so carries no gradient: ``cosim.couplers.mpm_cloth``). H_ff may be indefinite (the unprojected Hessian of a buckled cloth): it is
+(a_v the vertex areas; M = m + A the inertia with a coupling's added mass A, ``cosim.couplers.mpm_cloth``),
+and dL/dA = -lam . (x_{n+1} - x^) / h^2 per free vertex (A enters G only as A (x - x^) / h^2).
+H_ff may be indefinite (the unprojected Hessian of a buckled cloth): it is
 factorised by a symmetric-mode LU when it is positive definite, else by LU with partial pivoting; an exactly singular H_ff raises ``SimulationError``. The
 mixin reads the engine's ``frame_dt``, ``gravity``, ``free``, ``free_dofs``, ``pres_dofs``,
 ``ctrl_vertex``, ``ctrl_group``, ``controls``, ``energy``, ``_ff``, ``_pf`` and helpers.
@@ -75,7 +76,6 @@ class ClothAdjoint:
         g_mem, g_bend = self.energy.gradients(record.x_next)
         x_hat = record.x + h * record.v
         accel = (record.x_next - x_hat) / h**2 + mat.c_mass * record.v_next - self.gravity
-        # dG/dA_v = (x - x^)_v / h^2 per coordinate: dL/dA = -lam . (x - x^) / h^2 per vertex (free vertices)
         grad_added = -np.sum(np.where(free, lam, 0.0) * (record.x_next - x_hat), axis=1) / h**2
         return {
             "added_mass": grad_added,
