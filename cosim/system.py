@@ -3,14 +3,13 @@
 ``CoupledSystem`` runs the paper's loop over engines and couplers it knows only
 through their contracts (``cosim.engines.contract``)::
 
-    for c in couplers:   boundaries[c.source] = c.boundary(dt, K)
-    s_M', reactions    = mpm.step(s_M, boundaries, impulse)
-    for c in couplers:   forces[c.engine] += c.forces(reactions[c.source])
-    for e in engines:    s_e' = e.step(s_e, action_e, forces[e])   (in order; an engine's output
-                         "reactions" {later engine: forces} adds to that engine's forces)
+    for c in MPM couplers:   boundaries[c.source] = c.boundary(dt, K)
+    s_M', reactions        = mpm.step(s_M, boundaries, impulse)
+    for c in MPM couplers:   loads[c.engine] += c.forces(reactions[c.source])
+    for e in engines:        (in order) the same exchange with the couplers whose medium is e
+                             (a cloth meeting rigid bodies), around s_e' = e.step(s_e, action_e, loads[e])
 
-and its reverse (``vjp``; engine-to-engine reactions, a cloth's contact on rigid links, are
-not differentiated). The runner's guards (``cosim.step_guard``) sit around the exchange: they
+and its reverse (``vjp``). The runner's guards (``cosim.step_guard``) sit around the exchange: they
 pick the substep count K from the CFL bound (or check a fixed one), redo a step that broke it,
 and stop with a ``SimulationError`` naming the step, the body and the quantity as soon as a step
 produces NaN/inf, violates the CFL bound, leaves the grid, breaks the energy budget or lets
@@ -90,7 +89,12 @@ class CoupledSystem:
     ):
         self.mpm = mpm
         self.engines = {e.name: e for e in engines}
-        self.couplers = list(couplers)
+        self.couplers = list(couplers)  # all of them; the MPM's and each engine's by ``medium``:
+        self.mpm_couplers = [c for c in self.couplers if c.medium == "mpm"]
+        self.engine_couplers = {name: [c for c in self.couplers if c.medium == name] for name in self.engines}
+        unknown = {c.medium for c in self.couplers} - {"mpm", *self.engines}
+        if unknown:
+            raise ValueError(f"couplers name media that are not engines of the system: {sorted(unknown)}")
         self.stepping = stepping
         self.gravity = np.asarray(gravity, dtype=np.float64)
         self.domain = np.asarray(domain, dtype=np.float64)  # [m] upper corner of the grid
@@ -188,8 +192,8 @@ class CoupledSystem:
         while True:  # the guard doubles K while a step breaks the CFL bound (auto substeps)
             dt = self.frame_dt / K
             with self._timed("couplers"):
-                exchange = {c.name: c.boundary(dt, K) for c in self.couplers}  # engine states -> boundary states
-            boundaries = {c.source: exchange[c.name][0] for c in self.couplers}
+                exchange = {c.name: c.boundary(dt, K) for c in self.mpm_couplers}  # engine states -> boundaries
+            boundaries = {c.source: exchange[c.name][0] for c in self.mpm_couplers}
             with self._timed("mpm"):
                 inputs = {"dt": dt, "substeps": K, "impulse": impulse, "boundaries": boundaries}
                 outputs, mpm_record = self.mpm.step(inputs)
@@ -202,32 +206,40 @@ class CoupledSystem:
         coupler_records = {name: record for name, (_states, record) in exchange.items()}
         with self._timed("couplers"):  # reactions -> each engine's load (forces, added mass)
             loads = self._loads(coupler_records, outputs["reactions"])
-        engine_records = self._step_engines(loads, actions)
+        engine_records = self._step_engines(loads, actions, coupler_records)
         guard.end_step()
         self.step_index += 1
         self.last = StepRecord(t0, mpm_record, engine_records, coupler_records, {"reactions": outputs["reactions"]})
         return self.last
 
     def _loads(self, coupler_records: dict, reactions: dict) -> dict[str, dict]:
-        """{engine: the sum of its couplers' loads ({"forces", "added_mass"})} from the MPM's reactions."""
+        """{engine: the sum of its MPM couplers' loads ({"forces", "added_mass"})} from the MPM's reactions."""
         loads: dict[str, dict] = {}
-        for c in self.couplers:
+        for c in self.mpm_couplers:
             loads[c.engine] = add_loads(loads.get(c.engine), c.forces(coupler_records[c.name], reactions[c.source]))
         return loads
 
-    def _step_engines(self, loads: dict[str, dict], actions: dict[str, np.ndarray] | None) -> dict[str, Any]:
-        """Every manipulator engine's step in order, each with its action and forces; an engine's output
-        "reactions" {later engine: forces} (a cloth pressing on DART links) adds to that engine's forces."""
+    def _step_engines(self, loads: dict[str, dict], actions: dict | None, coupler_records: dict) -> dict[str, Any]:
+        """Every manipulator engine's step in order, each with its action, its load and the boundaries of
+        the couplers it is the medium of, whose reactions then load their engines (which step later)."""
         records, stepped = {}, set()
         for name, engine in self.engines.items():
             act = actions[name] if actions is not None and name in actions else self.action(name, self.step_index)
+            couplers = self.engine_couplers[name]
+            with self._timed("couplers"):
+                exchange = {c.name: c.boundary(self.frame_dt, 1) for c in couplers}
+            inputs = {"action": act, **loads.get(name, {})}
+            if couplers:
+                inputs["boundaries"] = {c.source: exchange[c.name][0] for c in couplers}
             with self._timed(name):
-                out, records[name] = engine.step({"action": act, **loads.get(name, {})})
+                out, records[name] = engine.step(inputs)
             stepped.add(name)
-            for target, f in (out.get("reactions") or {}).items():
-                if target in stepped:
-                    raise RuntimeError(f"engine '{name}' hands forces to '{target}', which steps before it")
-                loads[target] = add_loads(loads.get(target), {"forces": f})
+            for c in couplers:
+                coupler_records[c.name] = exchange[c.name][1]
+                load = c.forces(coupler_records[c.name], out["reactions"][c.source])
+                if load and c.engine in stepped:
+                    raise RuntimeError(f"coupler '{c.name}' loads engine '{c.engine}', which steps before '{name}'")
+                loads[c.engine] = add_loads(loads.get(c.engine), load)
         return records
 
     def rollout(
@@ -273,22 +285,33 @@ class CoupledSystem:
         {parameter key: this step's share}} (an engine's vjp reports its own under "material").
         """
         state_grads, action_grads, force_grads, material_grads = {}, {}, {}, {}
-        for name in reversed(list(self.engines)):
-            out = self.engines[name].vjp(record.engines[name], {"state": grad[name]})
-            state_grads[name], action_grads[name] = out["state"], out["action"]
+        reaction_grads, carries, carried_grads = {}, {}, {}
+        after = grad.get("couplers") or {}  # dL/d(a coupler's own state after the step)
+
+        def loads_vjp(c) -> None:  # dL/d(c's load on its engine) -> dL/d(reactions of c's source)
+            reaction_grads[c.source], carries[c.name], carried_grads[c.name] = c.forces_vjp(
+                record.couplers[c.name], force_grads.get(c.engine, {}), after.get(c.name)
+            )
+
+        for name in reversed(list(self.engines)):  # later engines first: a medium's loads feed later engines
+            couplers = self.engine_couplers[name]
+            for c in couplers:
+                loads_vjp(c)
+            given = {c.source: reaction_grads[c.source] for c in couplers if reaction_grads[c.source] is not None}
+            out = self.engines[name].vjp(record.engines[name], {"state": grad[name], "reactions": given})
+            state_grads[name], action_grads[name] = add_states(state_grads.get(name), out["state"]), out["action"]
             force_grads[name] = {"forces": out["forces"], "added_mass": out.get("added_mass")}  # dL/d(its load)
             if out.get("material"):
                 material_grads[name] = out["material"]
-        reaction_grads, carries, carried_grads = {}, {}, {}
-        after = grad.get("couplers") or {}  # dL/d(a coupler's own state after the step)
-        for c in self.couplers:
-            g_forces = force_grads.get(c.engine, {})
-            reaction_grads[c.source], carries[c.name], carried_grads[c.name] = c.forces_vjp(
-                record.couplers[c.name], g_forces, after.get(c.name)
-            )
-        reaction_grads = {k: v for k, v in reaction_grads.items() if v is not None}
-        mpm = self.mpm.vjp(record.mpm, {"state": grad["mpm"], "reactions": reaction_grads})
-        for c in self.couplers:
+            for c in couplers:
+                g = c.boundary_vjp(record.couplers[c.name], out["boundaries"][c.source], carries[c.name])
+                state_grads[c.engine] = add_states(state_grads.get(c.engine), g)
+        for c in self.mpm_couplers:
+            loads_vjp(c)
+        mpm_grads = {c.source: reaction_grads[c.source] for c in self.mpm_couplers}
+        mpm_grads = {k: v for k, v in mpm_grads.items() if v is not None}
+        mpm = self.mpm.vjp(record.mpm, {"state": grad["mpm"], "reactions": mpm_grads})
+        for c in self.mpm_couplers:
             g = c.boundary_vjp(record.couplers[c.name], mpm["boundaries"][c.source], carries[c.name])
             state_grads[c.engine] = add_states(state_grads[c.engine], g)
         carried_grads = {name: g for name, g in carried_grads.items() if g is not None}

@@ -65,6 +65,11 @@ def _towel(size=0.3, n=11, height=0.2, damping=0.0, bend=1e-3):
     return ClothEngine(mesh, ClothMaterial(k_stretch=500.0, k_bend=bend, c_mass=damping), frame_dt=2e-3)
 
 
+def _planes(towel, obstacles, pose, thickness: float) -> dict:
+    """A step's inputs with the contact planes of the towel's current points against one body at ``pose``."""
+    return {"boundaries": {"body": obstacles.planes(towel.contact.points(towel.x), [pose], thickness)}}
+
+
 def test_towel_dropped_on_a_rod_drapes_over_it():
     """A soft towel falling onto a horizontal rod (a cylinder along z, python-fcl) ends up hanging on it
     (friction 0.5; without friction a draped towel slides off on the triangulation's asymmetry): the
@@ -84,13 +89,13 @@ def test_towel_dropped_on_a_rod_drapes_over_it():
     obstacles = RigidObstacles([rod], ".", ["rod"])
     thickness = 0.005
     towel = _towel(size=0.2, n=9, height=0.03, damping=2.0, bend=1e-5)
-    towel.attach_rigid_contact(lambda pts: obstacles.planes(pts, [pose], thickness), thickness, friction=0.5)
+    towel.attach_rigid_contact(thickness, friction=0.5)
     masses = towel.masses()
     load_gap = masses.sum() * 9.81 * towel.frame_dt**2 / (100.0 * masses.min())  # kappa = 100
     x_before = towel.state()["x"]
     deepest, closest = -np.inf, np.inf
     for _ in range(250):
-        towel.step({})
+        towel.step(_planes(towel, obstacles, pose, thickness))
         x = towel.state()["x"]
         surface = np.hypot(x[:, 0], x[:, 1]) - rod.radius
         moved = np.linalg.norm(x - x_before, axis=1)
@@ -115,7 +120,7 @@ def test_cloth_adjoint_with_active_floor_contact_matches_central_differences():
     pose = (np.array([0.0, -0.05, 0.0]), np.eye(3))
     obstacles = RigidObstacles([floor], ".", ["floor"])
     towel = _towel(n=6, height=0.004)
-    towel.attach_rigid_contact(lambda pts: obstacles.planes(pts, [pose], 0.005), 0.005, friction=0.0)
+    towel.attach_rigid_contact(0.005, friction=0.0)
     rng = np.random.default_rng(3)
     start = towel.state()
     start["v"] = rng.normal(0.0, 0.3, start["v"].shape) - [0.0, 1.0, 0.0]
@@ -123,7 +128,7 @@ def test_cloth_adjoint_with_active_floor_contact_matches_central_differences():
 
     def loss(v0):
         towel.set_state({"x": start["x"], "v": v0})
-        records = [towel.step({})[1] for _ in range(2)]
+        records = [towel.step(_planes(towel, obstacles, pose, 0.005))[1] for _ in range(2)]
         s = towel.state()
         return float(np.sum(wx * s["x"]) + np.sum(wv * s["v"])), records
 
@@ -137,3 +142,58 @@ def test_cloth_adjoint_with_active_floor_contact_matches_central_differences():
     fd = (loss(start["v"] + eps * d)[0] - loss(start["v"] - eps * d)[0]) / (2 * eps)
     adjoint = float(np.sum(grad["v"] * d))
     assert abs(adjoint - fd) <= 1e-6 * abs(fd)
+
+
+def test_cloth_adjoint_with_friction_and_a_moving_tilted_floor_matches_central_differences():
+    """A sliding towel pressed onto a tilted box floor with friction 0.5, three steps. The step depends
+    on its start through the lagged normal force and the slip, and on the floor's pose through the
+    planes (held in the floor's frame: p = o + R p_l, n = R n_l, exact for a flat face): the adjoint of
+    x0, v0, the floor's height and its tilt about z (through the returned plane adjoints and the
+    reactions' adjoints of a loss on the reaction force) must match central differences to 1e-5 (the
+    friction's Newton solves leave the differences themselves uncertain at a few 1e-6; without the
+    start's path the x0, v0 adjoint is 25 % off)."""
+    floor = SimpleNamespace(type="box", size=[1.0, 0.1, 1.0])
+    obstacles = RigidObstacles([floor], ".", ["floor"])
+    towel = _towel(n=6, height=0.006)
+    towel.attach_rigid_contact(0.005, friction=0.5)
+    rng = np.random.default_rng(5)
+    start = towel.state()
+    start["v"] += [0.02, -0.1, 0.0]  # sliding into the floor
+    wx, wv, wr = rng.normal(size=start["x"].shape), rng.normal(size=start["v"].shape), rng.normal(size=3)
+
+    def pose(height: float, tilt: float):
+        return np.array([0.0, -0.05 + height, 0.0]), so3.exp(np.array([0.0, 0.0, 0.01 + tilt]))
+
+    def loss(x0, v0, height=0.0, tilt=0.0):
+        towel.set_state({"x": x0, "v": v0})
+        total, records = 0.0, []
+        for _ in range(3):
+            out, record = towel.step(_planes(towel, obstacles, pose(height, tilt), 0.005))
+            total += float(wr @ out["reactions"]["body"].sum(axis=0))
+            records.append(record)
+        s = towel.state()
+        return total + float(np.sum(wx * s["x"]) + np.sum(wv * s["v"])), records
+
+    _, records = loss(start["x"], start["v"])
+    assert all(len(r.contacts.face) >= 10 for r in records)
+    o, R = pose(0.0, 0.0)
+    grad, g_height, g_tilt = {"x": wx, "v": wv}, 0.0, 0.0
+    for r in reversed(records):
+        out = towel.vjp(r, {"state": grad, "reactions": {"body": np.tile(wr, (len(r.contacts.face), 1))}})
+        grad, planes = out["state"], out["boundaries"]["body"]
+        spin = np.array([0.0, 0.0, 1.0])
+        g_height += float(planes["point"][:, 1].sum())
+        g_tilt += float(
+            np.sum(planes["point"] * np.cross(spin, r.contacts.point - o))
+            + np.sum(planes["normal"] * np.cross(spin, r.contacts.normal))
+        )
+    eps = 1e-6
+    dx, dv = rng.normal(size=start["x"].shape) * 1e-3, rng.normal(size=start["v"].shape)
+    checks = [
+        (np.sum(grad["x"] * dx) + np.sum(grad["v"] * dv), lambda e: loss(start["x"] + e * dx, start["v"] + e * dv)[0]),
+        (g_height, lambda e: loss(start["x"], start["v"], height=e)[0]),
+        (g_tilt, lambda e: loss(start["x"], start["v"], tilt=e)[0]),
+    ]
+    for adjoint, f in checks:
+        fd = (f(eps) - f(-eps)) / (2 * eps)
+        assert abs(adjoint - fd) <= 1e-5 * abs(fd), (adjoint, fd)

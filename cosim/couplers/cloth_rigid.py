@@ -1,6 +1,6 @@
 """Cloth against rigid bodies: the scene's rigid shapes as python-fcl collision objects.
 
-Once per cloth step, every cloth contact point (vertices and face centroids) near a rigid
+Once per cloth step (``cosim.couplers.cloth_rigid_coupler``), every cloth contact point (vertices and face centroids) near a rigid
 body asks fcl for its distance to the body's surface and the nearest surface point. A point
 within ``radius`` (the cloth's contact thickness [m]) of a surface gets a contact plane
 through the nearest point p with normal n towards the point: the cloth solve keeps
@@ -14,37 +14,20 @@ triangle meshes (unsigned distance: the surface is a two-sided sheet of thicknes
 along +y in our scenes and along z in fcl. Rigid bodies without a scene shape (URDF links
 with their own meshes) are not cloth obstacles.
 
-Gradients: the planes are data of the step (taken at its start), not differentiated with
-respect to the rigid pose or the cloth's previous positions; the cloth's adjoint is exact
-for the step with those planes (the penalty's Hessian is part of it).
+Gradients: the coupler differentiates a plane as fixed in its body's frame over the step.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from cosim.engines.cloth_contact import ContactPlanes
 from cosim.engines.meshes import load_mesh
 from cosim.errors import SceneError
 
 Z_TO_Y = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])  # fcl's z axis onto our y axis
-
-
-@dataclass
-class ContactPlanes:
-    """Contact planes of one step: point ``index`` (into the queried points) touches ``body``;
-    the plane passes through ``point`` [m] with unit ``normal`` towards the cloth."""
-
-    index: np.ndarray  # (c,) int
-    body: np.ndarray  # (c,) int
-    point: np.ndarray  # (c, 3)
-    normal: np.ndarray  # (c, 3)
-
-    @staticmethod
-    def empty() -> ContactPlanes:
-        return ContactPlanes(np.zeros(0, int), np.zeros(0, int), np.zeros((0, 3)), np.zeros((0, 3)))
 
 
 def fcl_geometry(shape, source_dir: Path, key: str):

@@ -76,6 +76,7 @@ class MPMClothCoupler:
     def __init__(self, cloth, name: str | None = None, max_travel: float = np.inf, added_mass: bool = True):
         self.cloth = cloth
         self.engine = cloth.name
+        self.medium = "mpm"
         self.name = self.source = name or cloth.name
         self.max_travel = float(max_travel)  # [m] per frame: the tracing band (``ClothBoundary.max_step_travel``)
         self.added_mass = bool(added_mass)

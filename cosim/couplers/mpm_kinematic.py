@@ -18,6 +18,7 @@ class MPMKinematicCoupler:
         self.kinematic = kinematic
         self.name = self.source = name
         self.engine = kinematic.name
+        self.medium = "mpm"
 
     def boundary(self, dt: float, substeps: int) -> tuple[dict, None]:
         """Poses and twists of the motions at the start of each substep of the current frame."""

@@ -142,6 +142,7 @@ class MPMRigidCoupler:
         self.dim = dim
         self.name = self.source = name
         self.engine = rigid.name
+        self.medium = "mpm"
 
     def current_bodies(self) -> BodyStates:
         s = self.rigid.body_states()

@@ -51,20 +51,19 @@ improving within 100x of it counts as converged (the floor is an estimate). Not 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
-from scipy.sparse.linalg import splu
 
-from cosim.engines.cloth_adjoint import SPD_LU, ClothAdjoint, _positive_definite
+from cosim.engines.cloth_adjoint import ClothAdjoint
 from cosim.engines.cloth_contact import ContactSet, RigidContact
 from cosim.engines.cloth_energy import ElasticEnergy, SparsePattern, hessian_entries, project_psd
 from cosim.engines.cloth_mesh import ClothMesh
-from cosim.errors import InputError, SimulationError
+from cosim.engines.cloth_solve import ClothSolver, StepData
+from cosim.errors import InputError
 
 MATERIAL_KEYS = ("k_stretch", "k_bend", "c_mass", "density")
 G_REF = 9.81  # [m/s^2] reference acceleration of the residual tolerance (also with gravity off)
-LINE_SEARCH_HALVINGS = 30
 
 
 @dataclass(frozen=True)
@@ -108,21 +107,7 @@ class ClothRecord:
         return sum(a.nbytes for a in (self.x, self.v, self.action, self.forces, self.x_next, self.v_next))
 
 
-@dataclass
-class _Step:
-    """What the incremental potential of one step depends on besides x."""
-
-    x_n: np.ndarray
-    x_hat: np.ndarray
-    forces: np.ndarray
-    material: ClothMaterial
-    contacts: ContactSet | None = None  # planes of rigid bodies this step (``attach_rigid_contact``)
-    added_mass: np.ndarray | None = None  # (V,) [kg] from the coupling
-    mass: np.ndarray = field(init=False)  # (V, 1) [kg] lumped (gravity, damping); inertia: + added mass
-    inertia: np.ndarray = field(init=False)
-
-
-class ClothEngine(ClothAdjoint):
+class ClothEngine(ClothAdjoint, ClothSolver):
     """A triangle-mesh cloth (see the module docstring); conforms to ``cosim.engines.contract.Engine``."""
 
     capabilities = frozenset({"points", "surface_speed", "material", "mesh"})
@@ -177,15 +162,11 @@ class ClothEngine(ClothAdjoint):
         self.steps = 0
         self.last_solve: dict = {}
         self.contact: RigidContact | None = None
-        self._route = None
 
-    def attach_rigid_contact(self, planes_fn, thickness: float, route=None, friction: float = 0.0) -> None:
-        """Rigid bodies the cloth collides with (``cosim.engines.cloth_contact``): ``planes_fn(points)``
-        gives a step's contact planes; ``route(wrenches)`` -> {engine name: its forces}, with
-        ``wrenches(origins)`` the (bodies, 6) reaction about the given body origins, hands the reaction
-        to the engine that moves the bodies (None: prescribed bodies take none); ``friction`` mu."""
-        self.contact = RigidContact(self.mesh.faces, self.masses(), self.frame_dt, thickness, planes_fn, friction)
-        self._route = route
+    def attach_rigid_contact(self, thickness: float, friction: float = 0.0) -> None:
+        """Let the cloth collide with rigid bodies (``cosim.engines.cloth_contact``): contact thickness
+        [m] and friction coefficient mu; each step's planes come as the input "boundaries"."""
+        self.contact = RigidContact(self.mesh.faces, self.masses(), self.frame_dt, thickness, friction)
 
     def _indices(self, idx, what: str) -> np.ndarray:
         idx = np.asarray(idx, dtype=np.int64).reshape(-1)
@@ -247,13 +228,17 @@ class ClothEngine(ClothAdjoint):
         return out
 
     def step(self, inputs: dict) -> tuple[dict, ClothRecord]:
-        """One frame: ``inputs`` action, forces, added_mass (each None or see the module docstring).
-        Returns ({"state": state after}, record)."""
+        """One frame: ``inputs`` action, forces, added_mass, boundaries {source: ContactPlanes} (each
+        None or see the module docstring). Returns ({"state": state after, "reactions": {source: (c, 3)
+        [N] the force on the rigid body at each plane point}}, record)."""
         action, forces, added = self._inputs(inputs.get("action"), inputs.get("forces"), inputs.get("added_mass"))
         x_n, v_n, mat = self.x, self.v, self._material
         data = self._step_data(x_n, v_n, forces, mat, added)
-        if self.contact is not None:
-            data.contacts = self.contact.prepare(x_n)
+        planes = inputs.get("boundaries") or {}
+        if planes and self.contact is None:
+            raise InputError(f"cloth '{self.name}': contact planes given but no rigid contact attached")
+        if planes:
+            data.contacts = self.contact.prepare(x_n, planes)
         x_next, iterations, residual, tol = self._solve(data, self._prescribed_next(x_n, action))
         v_next = (x_next - x_n) / self.frame_dt
         record = ClothRecord(
@@ -263,8 +248,9 @@ class ClothEngine(ClothAdjoint):
         self.x, self.v = x_next, v_next
         self.steps += 1
         outputs = {"state": self.state()}
-        if self._route is not None and data.contacts is not None:
-            outputs["reactions"] = self._route(lambda origins: self.contact.wrenches(x_next, data.contacts, origins))
+        if data.contacts is not None:
+            on_bodies = -self.contact.forces(x_next, data.contacts)
+            outputs["reactions"] = {src: on_bodies[rows] for src, rows in data.contacts.sources.items()}
         return outputs, record
 
     def _inputs(self, action, forces, added=None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
@@ -296,8 +282,8 @@ class ClothEngine(ClothAdjoint):
         mem, bend = self.energy.energies(x)
         return self._material.k_stretch * mem + self._material.k_bend * bend
 
-    def _step_data(self, x_n, v_n, forces, mat: ClothMaterial, added: np.ndarray | None = None) -> _Step:
-        data = _Step(x_n, x_n + self.frame_dt * v_n, forces, mat, added_mass=added)
+    def _step_data(self, x_n, v_n, forces, mat: ClothMaterial, added: np.ndarray | None = None) -> StepData:
+        data = StepData(x_n, x_n + self.frame_dt * v_n, forces, mat, added_mass=added)
         data.mass = self.masses(mat.density)[:, None]
         data.inertia = data.mass if added is None else data.mass + added[:, None]
         return data
@@ -309,7 +295,7 @@ class ClothEngine(ClothAdjoint):
             x[self.ctrl_vertex] += self.frame_dt * action.reshape(-1, 3)[self.ctrl_group]
         return x
 
-    def _potential(self, x: np.ndarray, d: _Step) -> tuple[float, float]:
+    def _potential(self, x: np.ndarray, d: StepData) -> tuple[float, float]:
         """The incremental potential E(x) [J] and a bound on its round-off error [J]: each term's error is
         a few eps times the magnitudes it is computed from (|x - x^| (|x| + |x^|) for the inertia,
         I1 + 2 sqrt(I1 + 2J) + 2 ~ 8 per unit area for the membrane, |f| |x| for the loads)."""
@@ -332,7 +318,7 @@ class ClothEngine(ClothAdjoint):
         total = inertia + mat.k_stretch * mem + mat.k_bend * bend + external + contact
         return total, 64 * np.finfo(np.float64).eps * gross
 
-    def _gradient(self, x: np.ndarray, d: _Step) -> np.ndarray:
+    def _gradient(self, x: np.ndarray, d: StepData) -> np.ndarray:
         """grad E (V, 3) [N]."""
         h, mat = self.frame_dt, d.material
         g_mem, g_bend = self.energy.gradients(x)
@@ -362,7 +348,7 @@ class ClothEngine(ClothAdjoint):
         h = self.frame_dt
         return np.repeat(inertia / h**2 + mat.c_mass * m / h, 3)[self.free_dofs]
 
-    def _tolerance(self, d: _Step) -> float:
+    def _tolerance(self, d: StepData) -> float:
         mat = d.material
         m_max, i_max = float(d.mass.max()), float(d.inertia.max())
         h = self.frame_dt
@@ -372,79 +358,3 @@ class ClothEngine(ClothAdjoint):
             stiffness += float(d.contacts.stiffness.max())
         floor = 64 * np.finfo(np.float64).eps * (float(np.abs(d.x_n).max()) + self._size) * stiffness
         return max(wanted, floor)
-
-    def _solve(self, d: _Step, x_pres: np.ndarray) -> tuple[np.ndarray, int, float, float]:
-        """Projected Newton from x^ (prescribed vertices at ``x_pres``); (x, iterations, residual, tol)."""
-        x = d.x_hat.copy()
-        x[~self.free] = x_pres[~self.free]
-        tol = self._tolerance(d)
-        residual, history, best, alpha = np.inf, [], None, 1.0
-        for it in range(self.max_iterations + 1):
-            g = self._gradient(x, d).reshape(-1)[self.free_dofs]
-            residual = float(np.abs(g).max()) if len(g) else 0.0
-            if not np.isfinite(residual):
-                raise SimulationError(
-                    f"cloth '{self.name}': non-finite residual in step {self.steps}, Newton iteration {it}; reduce frame_dt or check the forces"
-                )
-            if residual <= tol:
-                return x, it, residual, tol
-            if best is None or residual < best[1]:
-                best = (x, residual)
-            history.append(residual)
-            if _stalled_at_round_off(history, tol):  # the best iterate is as good as float64 allows
-                return best[0], it, best[1], tol
-            if it == self.max_iterations:
-                break
-            # after a step the line search had to cut below half, the exact Hessian's model is poor here
-            # (cloth_catch, step 963: 52 iterations of steps cut to 1/256..1/2048 with it, 26 so)
-            x, alpha = self._line_search(x, self._direction(x, g, d, exact=alpha >= 0.5), g, d)
-        raise SimulationError(
-            f"cloth '{self.name}': Newton did not converge in step {self.steps} within {self.max_iterations} iterations: "
-            f"residual ||grad E||_inf = {residual:.3e} N > tolerance {tol:.3e} N; "
-            "reduce frame_dt, raise max_iterations or soften the material"
-        )
-
-    def _direction(self, x: np.ndarray, g: np.ndarray, d: _Step, exact: bool = True) -> np.ndarray:
-        """Newton direction over the free dofs: with the exact Hessian when ``exact`` and it is positive
-        definite (then Newton converges quadratically), else with the per-element PSD-projected one
-        (always a descent direction, and the stiffer model where elements are compressed or bent; alone
-        it converges only linearly once the exact Hessian would do)."""
-        diagonal = self._mass_diagonal(d.material, d.added_mass)
-        for project in (False, True) if exact else (True,):
-            entries = self._element_hessians(x, d.material, d.contacts, project)
-            lu = splu(self._ff.matrix(entries, diagonal), **SPD_LU)
-            if project or _positive_definite(lu):
-                return lu.solve(-g)
-        raise AssertionError("unreachable")
-
-    def _line_search(self, x: np.ndarray, dx: np.ndarray, g: np.ndarray, d: _Step) -> tuple[np.ndarray, float]:
-        """Backtracking on E along the free-dof direction dx: accept a sufficient decrease (Armijo,
-        c = 1e-4); once the predicted decrease alpha |g . dx| is below E's round-off (near convergence)
-        E cannot rank the points, so accept any step that does not raise E beyond its round-off.
-        Returns the new positions and the step length alpha taken."""
-        E0, noise = self._potential(x, d)
-        slope = float(g @ dx)
-        alpha = 1.0
-        for _ in range(LINE_SEARCH_HALVINGS):
-            trial = x.copy()
-            trial.reshape(-1)[self.free_dofs] += alpha * dx
-            E = self._potential(trial, d)[0]
-            if E <= E0 + 1e-4 * alpha * slope or (alpha * abs(slope) <= noise and E <= E0 + noise):
-                return trial, alpha
-            alpha *= 0.5
-        return trial, alpha
-
-
-STALL_WINDOW, STALL_FACTOR = 4, 100.0
-
-
-def _stalled_at_round_off(history: list[float], tol: float) -> bool:
-    """Newton has reached float64's floor: its best residual is within ``STALL_FACTOR`` of the
-    tolerance (whose round-off floor is an estimate) and the last ``STALL_WINDOW`` iterations did not
-    improve on the best before them by 10%. Measured on cloth_catch after 963 steps: quadratic
-    convergence to 2.3e-9 N, then 40 iterations between 2.19e-9 and 2.29e-9 (in a later run, iterates
-    wandering up to 2.9e-7) against an estimated 1.95e-9; the solver then returns its best iterate."""
-    if len(history) <= STALL_WINDOW:
-        return False
-    best_before = min(history[:-STALL_WINDOW])
-    return best_before <= STALL_FACTOR * tol and min(history[-STALL_WINDOW:]) > 0.9 * best_before

@@ -15,6 +15,10 @@ of x_{n+1} is gbar = gx + gv / h, and one solve H_ff lam = gbar_f gives (m the l
 
 (a_v the vertex areas; M = m + A the inertia with a coupling's added mass A, ``cosim.couplers.mpm_cloth``),
 and dL/dA = -lam . (x_{n+1} - x^) / h^2 per free vertex (A enters G only as A (x - x^) / h^2).
+Rigid contacts (``cloth_contact``): G holds -sum_i w_ij f_i, f_i the force of contact point i. The
+reactions' adjoints (dL/d(-f_i)) add (df_i/dy_i)^T dL/df_i to gbar at the point's vertices; the plane
+point, normal and the point's start position s_i then get (df_i/dtheta)^T (dL/df_i + sum_j w_ij lam_j),
+the direct path plus the solve's; s_i's goes to dL/dx_n. Output "boundaries" {source: {point, normal}}.
 H_ff may be indefinite (the unprojected Hessian of a buckled cloth): it is
 factorised by a symmetric-mode LU when it is positive definite, else by LU with partial pivoting; an exactly singular H_ff raises ``SimulationError``. The
 mixin reads the engine's ``frame_dt``, ``gravity``, ``free``, ``free_dofs``, ``pres_dofs``,
@@ -41,12 +45,20 @@ class ClothAdjoint:
     """``vjp`` of the cloth engine."""
 
     def vjp(self, record, grad_outputs: dict) -> dict:
-        """{"state": {"x", "v"}} (dL/d(state after), missing keys zero) -> {"state": {"x", "v"}, "action",
-        "forces", "k_stretch", "k_bend", "c_mass", "density"} of the recorded step (see the module docstring)."""
+        """{"state": {"x", "v"}, "reactions": {source: (c, 3)}} (dL/d(outputs), missing keys zero) ->
+        {"state": {"x", "v"}, "action", "forces", "added_mass", "boundaries", "material"} of the recorded
+        step (see the module docstring)."""
         V, h, mat = self.mesh.n_vertices, self.frame_dt, record.material
         grads = grad_outputs.get("state") or {}
         gx = np.zeros((V, 3)) if grads.get("x") is None else np.asarray(grads["x"], dtype=np.float64)
         gv = np.zeros((V, 3)) if grads.get("v") is None else np.asarray(grads["v"], dtype=np.float64)
+        contacts = record.contacts
+        if contacts is not None:  # dL/df of the contact points, from the reactions' adjoints (reaction = -f)
+            g_force = np.zeros((len(contacts.face), 3))
+            for source, g in (grad_outputs.get("reactions") or {}).items():
+                g_force[contacts.sources[source]] -= g
+            direct = self.contact.force_vjp(record.x_next, contacts, g_force)["y"]
+            gx = gx + self.contact.spread(contacts, direct, V)
         gbar = gx + gv / h
         lam = np.zeros(3 * V)
         coupling = np.zeros(3 * V)
@@ -77,7 +89,16 @@ class ClothAdjoint:
         x_hat = record.x + h * record.v
         accel = (record.x_next - x_hat) / h**2 + mat.c_mass * record.v_next - self.gravity
         grad_added = -np.sum(np.where(free, lam, 0.0) * (record.x_next - x_hat), axis=1) / h**2
+        planes = {}
+        if contacts is not None:  # the planes and the step's start through the forces, directly and in G
+            total = self.contact.force_vjp(record.x_next, contacts, g_force + self.contact.gathered(contacts, lam))
+            grad_x = grad_x + self.contact.spread(contacts, total["start"], V)
+            planes = {
+                src: {"point": total["point"][rows], "normal": total["normal"][rows]}
+                for src, rows in contacts.sources.items()
+            }
         return {
+            "boundaries": planes,
             "added_mass": grad_added,
             "state": {"x": grad_x, "v": grad_v},
             "action": grad_action.reshape(-1),

@@ -2,8 +2,9 @@
 
 At the start of a step, every cloth contact point (each vertex, then each face centroid: a
 rod thinner than the mesh's edges still meets the faces) near a rigid body gets a plane
-through the body's nearest surface point p with unit normal n towards the cloth (the
-planes come from ``planes_fn``; the scene wires python-fcl in, ``cosim.couplers.cloth_rigid``).
+through the body's nearest surface point p with unit normal n towards the cloth: the step's
+input "boundaries" {source: ``ContactPlanes``}, one set per coupler (``cosim.couplers.cloth_rigid``
+asks python-fcl).
 The step then minimises, besides its incremental potential,
 
     E_c(x) = sum_i k_i / 2 * max(0, r - n_i . (sum_j w_ij x_j - p_i))^2,
@@ -25,18 +26,36 @@ a smooth stick-slip law: slips below eps = v_eps h (v_eps = 1 mm/s) are resisted
 faster ones by the full mu lambda. A towel hangs on a rod by it (without friction a draped
 towel is in neutral balance and slides off on any asymmetry, measured).
 
-The planes and the lagged normal forces are data of the step: the adjoint (exact Hessian of
-E + E_c + D at the converged state) is exact for them, but does not follow how they move with
-the rigid pose or the cloth's previous positions. The reaction on rigid body b is minus the
-contact forces (normal and friction) of its points, applied at the plane points p_i.
+The step's output "reactions" {source: (c, 3) [N]} is minus each contact point's force (normal
+and friction): what the cloth exerts on the rigid body at the plane point p_i. Gradients
+(``force_vjp``): a point's force f_i(y_i, p_i, n_i, s_i) depends on its position y_i = sum_j w_ij x_j
+at the step's end, its plane, and (through the lagged normal force and the slip) on its position
+s_i at the step's start; the cloth's adjoint takes the reactions' adjoints and returns the planes'
+(``cosim.engines.cloth_adjoint``). Which points touch and the planes themselves are chosen by the
+coupler at the step's start; it differentiates them as fixed in the body's frame.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+
+
+@dataclass
+class ContactPlanes:
+    """Contact planes of one step from one source: point ``index`` (into the cloth's contact points,
+    ``RigidContact.points``) touches ``body``; the plane passes through ``point`` [m] with unit
+    ``normal`` towards the cloth."""
+
+    index: np.ndarray  # (c,) int
+    body: np.ndarray  # (c,) int
+    point: np.ndarray  # (c, 3)
+    normal: np.ndarray  # (c, 3)
+
+    @staticmethod
+    def empty() -> ContactPlanes:
+        return ContactPlanes(np.zeros(0, int), np.zeros(0, int), np.zeros((0, 3)), np.zeros((0, 3)))
 
 
 @dataclass
@@ -51,14 +70,11 @@ class ContactSet:
     body: np.ndarray  # (c,) int, the rigid body of each contact
     start: np.ndarray  # (c, 3) [m] the contact points at the step's start
     normal_force: np.ndarray  # (c,) [N] lagged, for friction
+    sources: dict[str, slice]  # the rows of each source's planes
 
 
 class RigidContact:
-    """Penalty contact of a cloth's vertices and face centroids with planes from ``planes_fn``.
-
-    ``planes_fn(points (P, 3)) -> planes`` with ``index`` (into the points: vertices first,
-    then face centroids), ``body``, ``point`` and ``normal`` arrays; ``thickness`` r [m].
-    """
+    """Penalty contact of a cloth's vertices and face centroids with given planes; ``thickness`` r [m]."""
 
     def __init__(
         self,
@@ -66,14 +82,12 @@ class RigidContact:
         masses: np.ndarray,
         frame_dt: float,
         thickness: float,
-        planes_fn: Callable,
         friction: float = 0.0,
         kappa: float = 100.0,
         slip_speed: float = 1e-3,
     ):
         self.faces = np.asarray(faces, dtype=np.int64)
         self.thickness = float(thickness)
-        self.planes_fn = planes_fn
         self.friction = float(friction)
         self.eps = slip_speed * frame_dt  # [m] slip below which friction acts as a spring
         V = len(masses)
@@ -94,27 +108,47 @@ class RigidContact:
         """(V + F, 3) [m]: the vertices, then the face centroids."""
         return np.concatenate([x, x[self.faces].mean(axis=1)])
 
-    def prepare(self, x_n: np.ndarray) -> ContactSet:
-        """The contact planes of a step starting at positions x_n (V, 3)."""
-        planes = self.planes_fn(self.points(x_n))
-        idx = np.asarray(planes.index, dtype=np.int64)
+    def prepare(self, x_n: np.ndarray, planes: dict[str, ContactPlanes]) -> ContactSet:
+        """The contacts of a step starting at positions x_n (V, 3) with each source's planes."""
+        sources, start = {}, 0
+        for name, p in planes.items():
+            sources[name] = slice(start, start + len(p.index))
+            start += len(p.index)
+        idx = np.concatenate([np.asarray(p.index, dtype=np.int64) for p in planes.values()] or [np.zeros(0, int)])
         V = len(x_n)
         is_vertex = idx < V
         face = np.where(is_vertex, self.vertex_face[np.minimum(idx, V - 1)], idx - V)
         weight = np.where(is_vertex[:, None], self.vertex_weight[np.minimum(idx, V - 1)], 1.0 / 3.0)
+
+        def rows(key: str, shape: tuple, dtype=np.float64) -> np.ndarray:
+            parts = [np.asarray(getattr(p, key), dtype=dtype).reshape(-1, *shape) for p in planes.values()]
+            return np.concatenate(parts) if parts else np.zeros((0, *shape), dtype=dtype)
+
         c = ContactSet(
             face,
-            weight,
-            np.asarray(planes.point, dtype=np.float64).reshape(-1, 3),
-            np.asarray(planes.normal, dtype=np.float64).reshape(-1, 3),
+            weight.reshape(-1, 3),
+            rows("point", (3,)),
+            rows("normal", (3,)),
             self.point_stiffness[idx],
-            np.asarray(planes.body, dtype=np.int64),
+            rows("body", (), np.int64),
             np.zeros((len(idx), 3)),
             np.zeros(len(idx)),
+            sources,
         )
         c.start = self.contact_points(x_n, c)
         c.normal_force = c.stiffness * self.gaps(x_n, c)
         return c
+
+    def spread(self, c: ContactSet, per_point: np.ndarray, n_vertices: int) -> np.ndarray:
+        """(V, 3): per-point vectors (c, 3) spread onto the vertices with the points' weights (the
+        adjoint of ``contact_points``)."""
+        out = np.zeros((n_vertices, 3))
+        np.add.at(out, self.faces[c.face], c.weight[:, :, None] * per_point[:, None, :])
+        return out
+
+    def gathered(self, c: ContactSet, per_vertex: np.ndarray) -> np.ndarray:
+        """(c, 3): per-vertex vectors (V, 3) combined at each point with its weights."""
+        return np.einsum("cj,cjk->ck", c.weight, per_vertex[self.faces[c.face]])
 
     def contact_points(self, x: np.ndarray, c: ContactSet) -> np.ndarray:
         """(c, 3) [m] the contact points at positions x (V, 3)."""
@@ -150,45 +184,71 @@ class RigidContact:
         """(c, 3) [N] the contact force on each point: the penalty along its normal plus friction."""
         f = (c.stiffness * self.gaps(x, c))[:, None] * c.normal
         if self.friction:
-            u, y = self._slip(x, c)
-            df_over_y = np.where(y < self.eps, 2 / self.eps - y / self.eps**2, 1.0 / np.maximum(y, 1e-300))
-            f -= (self.friction * c.normal_force * df_over_y)[:, None] * u
+            f -= (self.friction * c.normal_force)[:, None] * self._friction_terms(x, c)[2]
         return f
 
     def gradient(self, x: np.ndarray, c: ContactSet) -> np.ndarray:
         """(V, 3) [N] grad E_c: minus each point's force spread with its weights."""
-        g = np.zeros_like(x)
-        f = self.forces(x, c)
-        np.add.at(g, self.faces[c.face], -c.weight[:, :, None] * f[:, None, :])
-        return g
+        return -self.spread(c, self.forces(x, c), len(x))
+
+    def _friction_terms(self, x: np.ndarray, c: ContactSet):
+        """Slip u (c, 3), its length y, the unit slip t, T = I - n n^T, the friction direction
+        phi = f0'(y) u / y (friction force -mu lambda phi) and M = dphi/du (c, 3, 3)."""
+        u, y = self._slip(x, c)
+        _, df, d2f = self._f0(y)
+        safe = np.maximum(y, 1e-300)
+        df_over_y = np.where(y < self.eps, 2 / self.eps - y / self.eps**2, df / safe)
+        t = u / safe[:, None]
+        T = np.eye(3)[None] - np.einsum("ci,ck->cik", c.normal, c.normal)
+        # d/du (df/y u) = df/y I + (d2f - df/y) t t^T; at y -> 0 both terms tend to (2/eps) I
+        M = df_over_y[:, None, None] * np.eye(3)[None] + (d2f - df_over_y)[:, None, None] * np.einsum(
+            "ci,ck->cik", t, t
+        )
+        return u, T, df_over_y[:, None] * u, M
+
+    def point_hessians(self, x: np.ndarray, c: ContactSet) -> np.ndarray:
+        """(c, 3, 3) minus the derivative of each point's force with respect to its position."""
+        active = (self.gaps(x, c) > 0).astype(np.float64)
+        K = np.einsum("c,ci,ck->cik", c.stiffness * active, c.normal, c.normal)
+        if self.friction:
+            _, T, _, M = self._friction_terms(x, c)
+            K += (self.friction * c.normal_force)[:, None, None] * (M @ T)
+        return K
 
     def face_hessians(self, x: np.ndarray, c: ContactSet, n_faces: int) -> np.ndarray:
-        """(F, 9, 9) the Hessian of E_c as blocks on each face's dofs: k w_j w_l n n^T for active points."""
-        active = (self.gaps(x, c) > 0).astype(np.float64)
-        K = np.einsum("c,ci,ck->cik", c.stiffness * active, c.normal, c.normal)  # (c, 3, 3) point Hessians
-        if self.friction:
-            u, y = self._slip(x, c)
-            _, df, d2f = self._f0(y)
-            small = y < self.eps
-            safe = np.maximum(y, 1e-300)
-            df_over_y = np.where(small, 2 / self.eps - y / self.eps**2, df / safe)
-            t = u / safe[:, None]
-            T = np.eye(3)[None] - np.einsum("ci,ck->cik", c.normal, c.normal)
-            tt = np.einsum("ci,ck->cik", t, t)
-            # d/dx (df/y u) = df/y T + (d2f - df/y) t t^T (T t = t); at y -> 0 both terms tend to (2/eps) T
-            K += (self.friction * c.normal_force)[:, None, None] * (
-                df_over_y[:, None, None] * T + (d2f - df_over_y)[:, None, None] * tt
-            )
+        """(F, 9, 9) the Hessian of E_c as blocks on each face's dofs: w_j w_l K_i for each point."""
+        K = self.point_hessians(x, c)
         ww = np.einsum("cj,cl->cjl", c.weight, c.weight)  # (c, 3, 3)
         blocks = np.einsum("cjl,cik->cjilk", ww, K).reshape(-1, 9, 9)
         out = np.zeros((n_faces, 9, 9))
         np.add.at(out, c.face, blocks)
         return out
 
-    def wrenches(self, x: np.ndarray, c: ContactSet, origins: np.ndarray) -> np.ndarray:
-        """(bodies, 6) [torque about each body origin; force] [N m; N] the cloth exerts on the rigid bodies."""
-        on_body = -self.forces(x, c)
-        out = np.zeros((len(origins), 6))
-        np.add.at(out[:, 3:], c.body, on_body)
-        np.add.at(out[:, :3], c.body, np.cross(c.point - origins[c.body], on_body))
-        return out
+    def force_vjp(self, x: np.ndarray, c: ContactSet, g: np.ndarray) -> dict[str, np.ndarray]:
+        """The adjoint of the points' forces f (c, 3) at positions x: dL/df = ``g`` (c, 3) ->
+        dL/d(position y, start s, plane point p, plane normal n), each (c, 3).
+
+        f = k gap n [gap > 0] - mu lambda phi(u), gap = r - n . (y - p), u = T (y - s),
+        lambda = k max(0, r - n . (s - p)) (the lagged normal force)."""
+        gap, stiffness = self.gaps(x, c), c.stiffness
+        y_p = self.contact_points(x, c) - c.point
+        g_gap = stiffness * (gap > 0) * np.einsum("ck,ck->c", c.normal, g)
+        g_y = -g_gap[:, None] * c.normal
+        g_p = g_gap[:, None] * c.normal
+        g_n = (stiffness * gap)[:, None] * g - g_gap[:, None] * y_p
+        g_s = np.zeros_like(g)
+        if self.friction:
+            _, _, phi, M = self._friction_terms(x, c)
+            g_u = np.einsum("cik,ck->ci", M, -(self.friction * c.normal_force)[:, None] * g)
+            n_dot = np.einsum("ck,ck->c", c.normal, g_u)
+            d = self.contact_points(x, c) - c.start
+            g_d = g_u - n_dot[:, None] * c.normal  # u = d - n (n . d)
+            g_n -= np.einsum("ck,ck->c", c.normal, d)[:, None] * g_u + n_dot[:, None] * d
+            g_y += g_d
+            g_s -= g_d
+            s_p = c.start - c.point
+            g_gap0 = stiffness * (c.normal_force > 0) * (-self.friction * np.einsum("ck,ck->c", phi, g))
+            g_s -= g_gap0[:, None] * c.normal
+            g_p += g_gap0[:, None] * c.normal
+            g_n -= g_gap0[:, None] * s_p
+        return {"y": g_y, "start": g_s, "point": g_p, "normal": g_n}

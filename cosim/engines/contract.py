@@ -34,9 +34,11 @@ A manipulator engine (DART ``RigidEngine`` "dart", ``KinematicEngine`` "kinemati
     inputs    action (A,) (layout per engine; None: zeros), forces (engine-specific
               external forces, e.g. DART: (bodies, 6) wrenches [torque; force] in the
               world frame, torque about the body origin [N m; N]), added_mass (a coupling's
-              added mass, the cloth: (V,) [kg] in its inertia; None: none).
-    outputs   state (after the step).
-    vjp       {state} -> {state, action, forces} (and added_mass where it takes one).
+              added mass, the cloth: (V,) [kg] in its inertia; None: none); a cloth also
+              boundaries {source: ContactPlanes} (rigid bodies it meets).
+    outputs   state (after the step); a cloth with boundaries: reactions {source: (c, 3) [N]}.
+    vjp       {state, reactions} -> {state, action, forces} (and added_mass, boundaries where
+              it takes them).
 
 Boundary states and reactions (the MPM's side of a coupling)
 --------------------------------------------------------------
@@ -57,11 +59,15 @@ k = 0..K-1 of the step:
 
 Couplers
 --------
-A coupler joins one manipulator engine (``engine``) to the MPM through one boundary
-source (``source``). Forward, per macro step: ``boundary(dt, K)`` turns the engine's
-current state into BoundaryStates for the K substeps; after the MPM step,
-``forces(record, reactions)`` turns that source's reactions into the engine's load
-{"forces", "added_mass"} (each optional; ``add_loads`` sums several couplers'). Reverse:
+Every interaction between two engines is one coupler. A coupler joins an engine (``engine``)
+to the engine whose step meets it as a boundary (``medium``: "mpm", or a cloth meeting rigid
+bodies) through one boundary source (``source``). Forward, per macro step: ``boundary(dt, K)``
+turns the engine's current state into the medium's boundary input (the MPM: BoundaryStates for
+the K substeps; a cloth: ``ContactPlanes``); after the medium's step, ``forces(record, reactions)``
+turns that source's reactions into the engine's load {"forces", "added_mass"} (each optional;
+``add_loads`` sums several couplers'). A medium other than the MPM steps before the engines it
+loads; its step takes "boundaries" {source: input} and returns "reactions" {source: output}, and
+its vjp takes "reactions" adjoints and returns "boundaries" adjoints, as the MPM's. Reverse:
 ``forces_vjp(record, grad_load, grad_state) -> (grad_reactions, carry, grad_state_before)``
 before the MPM's vjp (``grad_state``: dL/d(the coupler's own carried state after the step),
 None for couplers without one), ``boundary_vjp(record, grad_boundary, carry) ->
@@ -71,14 +77,17 @@ system's vjp reads its adjoint under "couplers" and returns the one before the s
 
 The loop (``cosim.system.CoupledSystem``), as in the paper's chain rule::
 
-    for c in couplers:   boundaries[c.source] = c.boundary(dt, K)
+    for c in couplers of the MPM:   boundaries[c.source] = c.boundary(dt, K)
     s_M', reactions    = mpm.step(s_M, boundaries, impulse)
-    for c in couplers:   forces[c.engine] += c.forces(reactions[c.source])
-    for e in engines:    s_e' = e.step(s_e, action_e, forces[e])
+    for c in couplers of the MPM:   forces[c.engine] += c.forces(reactions[c.source])
+    for e in engines:    the same exchange with the couplers whose medium is e, around
+                         s_e', reactions_e = e.step(s_e, action_e, forces[e], boundaries_e)
 
-    reverse: each engine's vjp -> dL/ds_e, dL/da_e, dL/dF_e; each coupler's forces_vjp
-    -> reaction adjoints; one MPM vjp with all of them -> dL/ds_M and boundary adjoints;
-    each coupler's boundary_vjp -> added to dL/ds_e.
+    reverse: engines in reverse order, each vjp (with the reaction adjoints of the couplers
+    it is the medium of) -> dL/ds_e, dL/da_e, dL/dF_e and boundary adjoints, which those
+    couplers' boundary_vjp add to their engines' dL/ds; each MPM coupler's forces_vjp ->
+    reaction adjoints; one MPM vjp with all of them -> dL/ds_M and boundary adjoints; each
+    MPM coupler's boundary_vjp -> added to dL/ds_e.
 
 Optional capabilities
 ---------------------
@@ -139,10 +148,11 @@ class Engine(Protocol):
 
 @runtime_checkable
 class Coupler(Protocol):
-    """Joins the manipulator engine ``engine`` to the MPM through boundary source ``source``."""
+    """Joins engine ``engine`` to the engine ``medium`` (the MPM, a cloth) through boundary source ``source``."""
 
     name: str
     engine: str
+    medium: str
     source: str
 
     def boundary(self, dt: float, substeps: int) -> tuple[BoundaryStates, Any]: ...
@@ -163,6 +173,8 @@ CAPABILITIES = {
     "material": "material() -> {key: 0-d array} and set_parameters(values): material parameters",
     "material_grads": "a material_grads flag: its vjp skips material gradients while False",
     "mesh": "mesh (a ClothMesh) and state x, v (V, 3): a triangle mesh whose vertices losses and previews read",
+    "body_states": "body_names, body_states() (per body position, rotation, velocities), flat_state(), dofs and "
+    "body_states_vjp(...): rigid bodies a coupler pushes with wrenches (forces (bodies, 6)) and differentiates",
     # couplers
     "carried_state": "state() / set_state(s): a state of its own carried from step to step (the cloth's "
     "penetration tracing), part of the system's state under 'couplers'",

@@ -63,7 +63,7 @@ class RigidEngine(RigidAdjoint):
     """One DART world holding the given skeletons (deactivation off, so replay from a state is bitwise),
     and ``ground``, a static floor the colliding skeletons rest on (needs ``collision``)."""
 
-    capabilities = frozenset({"points"})
+    capabilities = frozenset({"points", "body_states"})
 
     def __init__(
         self,

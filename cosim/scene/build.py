@@ -107,7 +107,7 @@ def build_system(scene: Scene, requires_grad: bool = False, steps: int | None = 
     if rigid is not None:
         rigid.sources = parts.rigid_sources
         for cloth_index, cloth in enumerate(parts.cloths):
-            _attach_cloth_rigid_contact(scene, scene.cloth[cloth_index], cloth, rigid)
+            parts.couplers += cloth_rigid_couplers(scene, scene.cloth[cloth_index], cloth, rigid)
     domain = np.asarray(scene.cells) * scene.dx
     return CoupledSystem(
         mpm, parts.engines, parts.couplers, stepping, scene.gravity, domain, steps, controls, parts.plans, scene, rigid
@@ -198,36 +198,37 @@ def _add_cloth(scene: Scene, index: int, cloth_start, mpm, out: Manipulators) ->
     out.sources.append(source)
 
 
-def _attach_cloth_rigid_contact(scene: Scene, spec, cloth, rigid) -> None:
-    """Let a cloth collide with the rigid bodies the MPM sees that have a scene shape (python-fcl
-    planes, ``cosim.couplers.cloth_rigid``); DART links take the reaction, kinematic bodies none."""
+def cloth_rigid_couplers(scene: Scene, spec, cloth, rigid) -> list:
+    """The couplers that let a cloth collide with the rigid bodies the MPM sees that have a scene shape
+    (python-fcl, ``cosim.couplers.cloth_rigid_coupler``): one for the kinematic bodies (prescribed: they
+    take no reaction), one for the DART links (pushed back, differentiated)."""
     from cosim.couplers.cloth_rigid import RigidObstacles
+    from cosim.couplers.cloth_rigid_coupler import ClothRigidCoupler
 
     bodies = [i for i, shape in enumerate(rigid.shapes) if shape is not None and shape.type != "ring"]
     if not bodies:
-        return
-    obstacles = RigidObstacles([rigid.shapes[i] for i in bodies], scene.source_dir, [rigid.names[i] for i in bodies])
+        return []
     thickness = spec.thickness or 0.5 * scene.dx
+    cloth.attach_rigid_contact(thickness, scene.contact.friction)
     n_kinematic = len(rigid.kinematic.motions) if rigid.kinematic is not None else 0
-
-    def planes(points):
-        poses = rigid.poses()
-        return obstacles.planes(points, [poses[i] for i in bodies], thickness)
-
-    route = None
-    coupler = rigid.coupler
-    if coupler is not None and any(i >= n_kinematic for i in bodies):
-
-        def route(wrenches):
-            poses = rigid.poses()
-            w = wrenches(np.array([poses[i][0] for i in bodies]))
-            full = np.zeros((len(coupler.rigid.body_names), 6))
-            for row, i in enumerate(bodies):
-                if i >= n_kinematic:
-                    full[coupler.coupled[i - n_kinematic]] += w[row]
-            return {coupler.engine: full}
-
-    cloth.attach_rigid_contact(planes, thickness, route, scene.contact.friction)
+    groups = [(rigid.kinematic, [i for i in bodies if i < n_kinematic], lambda i: i)]
+    if rigid.coupler is not None:
+        groups.append(
+            (
+                rigid.coupler.rigid,
+                [i for i in bodies if i >= n_kinematic],
+                lambda i: rigid.coupler.coupled[i - n_kinematic],
+            )
+        )
+    out = []
+    for engine, members, index in groups:
+        if members:
+            obstacles = RigidObstacles(
+                [rigid.shapes[i] for i in members], scene.source_dir, [rigid.names[i] for i in members]
+            )
+            name = f"{cloth.name}-{engine.name}"
+            out.append(ClothRigidCoupler(cloth, engine, [index(i) for i in members], obstacles, thickness, name))
+    return out
 
 
 def _wave_speed(body, dim: int) -> float:

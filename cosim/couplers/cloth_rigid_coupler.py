@@ -1,0 +1,122 @@
+"""Two-way coupling of a cloth with the rigid bodies of one engine (DART links or kinematic bodies).
+
+One macro step n (the cloth steps before DART, so the reaction acts in the same frame):
+
+    boundary    the cloth's contact points (vertices, face centroids) at x^n within the contact
+                thickness of a body, asked of python-fcl at the bodies' poses at the step's start
+                (``RigidObstacles``), become contact planes: the cloth's input "boundaries";
+    cloth       steps with them as stiff penalties (``cosim.engines.cloth_contact``); its output
+                "reactions" are the forces it exerts on the bodies at the plane points;
+    forces      DART: per body the wrench [torque about the body origin o; force] of those forces;
+                kinematic bodies (prescribed motions) take none.
+
+Backward: ``forces_vjp`` turns dL/d(wrench) into the reactions' adjoints (the torque arms' part is
+carried); the cloth's vjp returns the planes' adjoints; ``boundary_vjp`` takes them through
+p = o + R p_l, n = R n_l to the bodies' poses and DART's kinematics (dL/ds_D^n). Which points touch
+and the body-frame feature (p_l, n_l) fcl picks are held fixed over the step: exact on flat faces; on
+a curved surface the nearest point's slide with the cloth within one step is not followed. A
+kinematic body passes no gradient back (its motion is not a parameter, as with the MPM).
+Conforms to ``cosim.engines.contract.Coupler`` with ``medium`` the cloth.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from cosim.couplers.cloth_rigid import RigidObstacles
+from cosim.engines.cloth_contact import ContactPlanes
+from cosim.engines.contract import declares
+
+
+@dataclass
+class ClothRigidRecord:
+    """One step's contacts as the vjp needs them."""
+
+    state: np.ndarray | None  # the rigid engine's flat state at the step's start (DART), else None
+    origin: np.ndarray  # (m, 3) [m] the coupled bodies' origins
+    planes: ContactPlanes
+    local_point: np.ndarray  # (c, 3) [m] each plane point in its body's frame
+    local_normal: np.ndarray  # (c, 3)
+    reactions: np.ndarray | None = None  # (c, 3) [N] the forces on the bodies, once ``forces`` ran
+
+
+class ClothRigidCoupler:
+    """Contact planes of ``rigid``'s bodies ``bodies`` (indices into its bodies: DART's ``body_names``
+    or the kinematic motions) for ``cloth``, and the cloth's reactions back to DART."""
+
+    capabilities = frozenset()
+
+    def __init__(self, cloth, rigid, bodies: list[int], obstacles: RigidObstacles, thickness: float, name: str):
+        self.cloth, self.rigid, self.obstacles = cloth, rigid, obstacles
+        self.bodies = np.asarray(bodies, dtype=np.int64)
+        self.thickness = float(thickness)  # [m] the cloth's contact thickness
+        self.name = self.source = name
+        self.medium, self.engine = cloth.name, rigid.name
+        self.pushes = declares(rigid, "body_states")  # DART takes the reactions; prescribed bodies none
+
+    def _poses(self) -> tuple[np.ndarray, np.ndarray]:
+        """(origins (m, 3), rotations (m, 3, 3)) of the coupled bodies now."""
+        if self.pushes:
+            s = self.rigid.body_states()
+            return s["position"][self.bodies], s["rotation"][self.bodies]
+        poses = self.rigid.poses()
+        return (np.array([poses[i][0] for i in self.bodies]), np.array([poses[i][1] for i in self.bodies]))
+
+    def boundary(self, dt: float, substeps: int) -> tuple[ContactPlanes, ClothRigidRecord]:
+        """The contact planes of the cloth's current points against the bodies at their current poses."""
+        origin, R = self._poses()
+        points = self.cloth.contact.points(self.cloth.x)
+        planes = self.obstacles.planes(points, list(zip(origin, R)), self.thickness)
+        Rb = R[planes.body]
+        local_point = np.einsum("cji,cj->ci", Rb, planes.point - origin[planes.body])  # R^T (p - o)
+        local_normal = np.einsum("cji,cj->ci", Rb, planes.normal)
+        state = self.rigid.flat_state() if self.pushes else None
+        return planes, ClothRigidRecord(state, origin, planes, local_point, local_normal)
+
+    def _arms(self, record: ClothRigidRecord) -> np.ndarray:
+        return record.planes.point - record.origin[record.planes.body]
+
+    def forces(self, record: ClothRigidRecord, reactions: np.ndarray) -> dict[str, np.ndarray]:
+        """{"forces": per-body wrenches (DART's bodies, 6)} of the cloth's reactions (c, 3) [N]; {} for
+        prescribed bodies."""
+        if not self.pushes:
+            return {}
+        record.reactions = np.asarray(reactions, dtype=np.float64).reshape(-1, 3)
+        body = self.bodies[record.planes.body]
+        wrenches = np.zeros((len(self.rigid.body_names), 6))
+        np.add.at(wrenches[:, :3], body, np.cross(self._arms(record), record.reactions))
+        np.add.at(wrenches[:, 3:], body, record.reactions)
+        return {"forces": wrenches}
+
+    def forces_vjp(self, record: ClothRigidRecord, grad_load: dict, grad_state: None = None) -> tuple:
+        """dL/d(wrenches) -> (dL/d(reactions) (c, 3), dL/d(torque arms) carried to ``boundary_vjp``, None)."""
+        if not self.pushes or grad_load.get("forces") is None:
+            return None, None, None
+        g = np.asarray(grad_load["forces"], dtype=np.float64)[self.bodies[record.planes.body]]
+        g_torque, g_force = g[:, :3], g[:, 3:]
+        g_reactions = g_force + np.cross(g_torque, self._arms(record))  # d/dF of gt . (r x F) = gt x r
+        g_arms = np.cross(record.reactions, g_torque)  # d/dr of gt . (r x F) = F x gt
+        return g_reactions, g_arms, None
+
+    def boundary_vjp(self, record: ClothRigidRecord, grad_boundary: dict, carry) -> dict[str, np.ndarray]:
+        """dL/d(planes) {"point", "normal"} (c, 3) and the torque arms' adjoint -> dL/ds of the rigid engine."""
+        if not self.pushes:
+            return {"steps": np.zeros(1)}
+        g_point = np.asarray(grad_boundary["point"], dtype=np.float64).reshape(-1, 3)
+        g_normal = np.asarray(grad_boundary["normal"], dtype=np.float64).reshape(-1, 3)
+        body = self.bodies[record.planes.body]
+        nb = len(self.rigid.body_names)
+        g_pos, g_R = np.zeros((nb, 3)), np.zeros((nb, 3, 3))
+        if carry is not None:  # arm = p - o
+            g_point = g_point + carry
+            np.add.at(g_pos, body, -carry)
+        np.add.at(g_pos, body, g_point)  # p = o + R p_l
+        outer = np.einsum("ci,cj->cij", g_point, record.local_point) + np.einsum(
+            "ci,cj->cij", g_normal, record.local_normal
+        )
+        np.add.at(g_R, body, outer)  # n = R n_l
+        flat = self.rigid.body_states_vjp(g_pos, g_R, state=record.state)
+        n = self.rigid.dofs
+        return {"q": flat[:n], "qd": flat[n:]}
