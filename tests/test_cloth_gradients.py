@@ -97,3 +97,73 @@ def test_gradients_through_the_added_mass_of_heavy_material():
         results = check_gradients(objective.evaluate, params, [name], objective.natural_scales(), 2, rel_step=1e-5)
         worst = max(r.relative_error for r in results)
         assert worst < 1e-5, f"{body} loss, d/d{name}: {[(r.adjoint, r.finite_difference) for r in results]}"
+
+
+BOX_TOP = 0.47 + 0.03125  # the DART box's top face [m] (centre 0.47, 6.25 cm tall) on the jelly's top at 0.4375
+DRAPE = {
+    "name": "drape_box",
+    "dim": 3,
+    "precision": "float64",
+    "steps": 20,
+    "time": {"frame_dt": 2e-3, "substeps": 2},
+    "mpm": {
+        "grid": {"cells": 16},
+        "bodies": [
+            {
+                "name": "jelly",
+                "material": {"type": "elastic", "E": 3e3, "nu": 0.3, "density": 500},
+                "shape": {"type": "box", "center": [0.5, 0.3125, 0.5], "size": [0.375, 0.25, 0.375]},
+            }
+        ],
+    },
+    "articulated": {
+        "skeletons": [
+            {
+                "name": "box",
+                "links": [
+                    {
+                        "name": "box",
+                        "shape": {"type": "box", "size": [0.15, 0.0625, 0.15]},
+                        "density": 300,
+                        "joint": {"type": "free", "position": [0.5, 0.47, 0.5]},
+                    }
+                ],
+            }
+        ]
+    },
+    "cloth": [
+        {
+            "name": "towel",
+            "mesh": {"type": "rectangle", "center": [0.5, BOX_TOP + 0.036, 0.5], "size": [0.3, 0.3], "resolution": [7, 7]},
+            "material": {"stretch": 300, "bend": 1e-3, "density": 0.3, "damping": 20.0},
+            "controls": [
+                {"name": "corners", "vertices": {"points": [[x, BOX_TOP + 0.036, z] for x in (0.35, 0.65) for z in (0.35, 0.65)]}}
+            ],
+            "actions": {"hold": 10, "initial": [0.0, -1.0, 0.0]},
+        }
+    ],
+    "contact": {"model": "forecast", "friction": 0.0},
+    "loss": {"type": "joint_target", "skeleton": "box", "joint": "box", "target": [0, 0, 0, 0.5, 0.3, 0.5]},
+}
+
+
+def test_gradients_of_a_towel_draped_over_a_free_dart_box():
+    """A towel thrown down (0.5 m/s, corners pulled at 1 m/s) onto a free DART box: it lands on the top
+    face and drapes over the edges (cloth-DART coupler: planes in, reactions out to DART; the edge
+    planes turn with the towel) for 19 of 20 steps and pushes the box. A loss on the box's pose, its
+    gradient with respect to the towel's initial velocity and action, adjoint vs central differences,
+    two directions each. Measured: 4e-6 and 2e-5 (v0), 1.3e-4 and 4e-6 (action), the differences
+    themselves steady to 1e-6 over steps 1e-7..1e-4; the cloth's side alone (the same contacts on a
+    prescribed box, ``test_cloth_rigid``) is exact to 1e-8, so 1e-4 is left on the DART side, not yet
+    found. Without the reaction's adjoint (before the coupler) the gradient was about zero."""
+    scene = parse_scene(DRAPE)
+    system = build_system(scene, requires_grad=True)
+    system.initial["towel"]["v"][:] = [0.0, -0.5, 0.0]
+    objective = Objective(system)
+    params = objective.initial_params()
+    touching = []
+    system.reset()
+    system.rollout(on_step=lambda n: n and touching.append(len(system.last.engines["towel"].contacts.face)))
+    assert min(touching[1:]) >= 20
+    results = check_gradients(objective.evaluate, params, ["towel.v0", "towel.action"], objective.natural_scales(), 2)
+    assert max(r.relative_error for r in results) < 3e-4, [(r.adjoint, r.finite_difference) for r in results]

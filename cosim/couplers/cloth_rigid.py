@@ -14,7 +14,10 @@ triangle meshes (unsigned distance: the surface is a two-sided sheet of thicknes
 along +y in our scenes and along z in fcl. Rigid bodies without a scene shape (URDF links
 with their own meshes) are not cloth obstacles.
 
-Gradients: the coupler differentiates a plane as fixed in its body's frame over the step.
+Gradients: each plane comes with how its point and normal move with the queried point (in the
+body frame, ``feature_jacobians``): exact for boxes (a face, edge or corner), spheres and capsules;
+zero, i.e. the plane held fixed in the body's frame, on cylinders, glasses and meshes (exact on their
+flat faces; on their curved or edge features first order in the cloth's motion over one step).
 """
 
 from __future__ import annotations
@@ -85,6 +88,7 @@ class RigidObstacles:
         self.geometries = [fcl_geometry(s, source_dir, k) for s, k in zip(shapes, keys)]
         self.objects = [fcl.CollisionObject(g, fcl.Transform(R, np.zeros(3))) for g, R, _ in self.geometries]
         self.signed = [not isinstance(g, fcl.BVHModel) for g, _, _ in self.geometries]
+        self.shapes = list(shapes)
         self._probe = fcl.CollisionObject(fcl.Sphere(0.0), fcl.Transform())
         self._request = fcl.DistanceRequest(enable_nearest_points=True, enable_signed_distance=True)
 
@@ -92,7 +96,7 @@ class RigidObstacles:
         """Contact planes of ``points`` (n, 3) [m] within ``radius`` of a body placed at ``poses``
         [(position (3,), rotation (3, 3) body to world)], one per (point, body) pair."""
         fcl = self._fcl
-        index, body, point, normal = [], [], [], []
+        index, body, point, normal, jp, jn = [], [], [], [], [], []
         for b, ((_geom, local_R, bound), obj, signed) in enumerate(zip(self.geometries, self.objects, self.signed)):
             pos, R = (np.asarray(a, dtype=np.float64) for a in poses[b])
             near = np.flatnonzero(np.linalg.norm(points - pos, axis=1) < bound + radius)
@@ -113,6 +117,35 @@ class RigidObstacles:
                 body.append(b)
                 point.append(R @ p + pos)
                 normal.append(R @ n)
+                J_p, J_n = feature_jacobians(self.shapes[b], q, p, n, d < 0)
+                jp.append(R @ J_p @ R.T)
+                jn.append(R @ J_n @ R.T)
         if not index:
             return ContactPlanes.empty()
-        return ContactPlanes(np.array(index), np.array(body), np.array(point), np.array(normal))
+        arrays = (np.array(a) for a in (index, body, point, normal, jp, jn))
+        return ContactPlanes(*arrays)
+
+
+def feature_jacobians(
+    shape, q: np.ndarray, p: np.ndarray, n: np.ndarray, inside: bool
+) -> tuple[np.ndarray, np.ndarray]:
+    """(dp/dq, dn/dq) (3, 3) in the body frame: how the nearest surface point p and the normal n of a
+    query point q move with q. Box: p = clamp(q) outside (a face, edge or corner), q moved onto the
+    nearest face inside; sphere and capsule: p on the ray from the nearest axis point. Other shapes:
+    zeros (the plane held fixed in the body frame)."""
+    eye = np.eye(3)
+    tangent = eye - np.outer(n, n)
+    if shape.type == "box":
+        if inside:
+            return tangent, np.zeros((3, 3))
+        free = (np.abs(q) < 0.5 * np.asarray(shape.size)).astype(np.float64)  # coordinates p follows
+        return np.diag(free), tangent @ np.diag(1.0 - free) / np.linalg.norm(q - p)
+    if shape.type in ("sphere", "capsule"):
+        half = 0.0 if shape.type == "sphere" else 0.5 * shape.height
+        along = np.zeros((3, 3))
+        if abs(q[1]) < half:
+            along[1, 1] = 1.0  # the nearest axis point (0, y, 0) follows q's y
+        axis_point = np.array([0.0, np.clip(q[1], -half, half), 0.0])
+        J_n = tangent @ (eye - along) / np.linalg.norm(q - axis_point)
+        return along + shape.radius * J_n, J_n
+    return np.zeros((3, 3)), np.zeros((3, 3))

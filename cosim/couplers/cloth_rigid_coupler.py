@@ -3,7 +3,7 @@
 One macro step n (the cloth steps before DART, so the reaction acts in the same frame):
 
     boundary    the cloth's contact points (vertices, face centroids) at x^n within the contact
-                thickness of a body, asked of python-fcl at the bodies' poses at the step's start
+                thickness of a body (plus twice the farthest a vertex moves in the frame), asked of python-fcl at the bodies' poses at the step's start
                 (``RigidObstacles``), become contact planes: the cloth's input "boundaries";
     cloth       steps with them as stiff penalties (``cosim.engines.cloth_contact``); its output
                 "reactions" are the forces it exerts on the bodies at the plane points;
@@ -11,11 +11,11 @@ One macro step n (the cloth steps before DART, so the reaction acts in the same 
                 kinematic bodies (prescribed motions) take none.
 
 Backward: ``forces_vjp`` turns dL/d(wrench) into the reactions' adjoints (the torque arms' part is
-carried); the cloth's vjp returns the planes' adjoints; ``boundary_vjp`` takes them through
-p = o + R p_l, n = R n_l to the bodies' poses and DART's kinematics (dL/ds_D^n). Which points touch
-and the body-frame feature (p_l, n_l) fcl picks are held fixed over the step: exact on flat faces; on
-a curved surface the nearest point's slide with the cloth within one step is not followed. A
-kinematic body passes no gradient back (its motion is not a parameter, as with the MPM).
+carried); the cloth's vjp returns the planes' adjoints (and takes the planes' dependence on its own
+start positions through their Jacobians, ``RigidObstacles``); ``boundary_vjp`` takes them through
+p = o + R p_l(x_l), n = R n_l(x_l), x_l = R^T (q - o) (q the queried point) to the bodies' poses and
+DART's kinematics (dL/ds_D^n). Which points touch is decided at the step's start. A kinematic body
+passes no gradient back (its motion is not a parameter, as with the MPM).
 Conforms to ``cosim.engines.contract.Coupler`` with ``medium`` the cloth.
 """
 
@@ -36,6 +36,8 @@ class ClothRigidRecord:
 
     state: np.ndarray | None  # the rigid engine's flat state at the step's start (DART), else None
     origin: np.ndarray  # (m, 3) [m] the coupled bodies' origins
+    rotation: np.ndarray  # (m, 3, 3) body to world
+    query: np.ndarray  # (c, 3) [m] the queried contact points
     planes: ContactPlanes
     local_point: np.ndarray  # (c, 3) [m] each plane point in its body's frame
     local_normal: np.ndarray  # (c, 3)
@@ -68,12 +70,17 @@ class ClothRigidCoupler:
         """The contact planes of the cloth's current points against the bodies at their current poses."""
         origin, R = self._poses()
         points = self.cloth.contact.points(self.cloth.x)
-        planes = self.obstacles.planes(points, list(zip(origin, R)), self.thickness)
+        # speculative: a point that may reach the contact layer within the frame gets its plane now, so the
+        # implicit step stops it at the layer (without, it enters unopposed and is pushed back out at its
+        # own speed the next frame: an elastic bounce)
+        reach = 2.0 * dt * float(np.linalg.norm(self.cloth.v, axis=1).max(initial=0.0))
+        planes = self.obstacles.planes(points, list(zip(origin, R)), self.thickness + reach)
         Rb = R[planes.body]
         local_point = np.einsum("cji,cj->ci", Rb, planes.point - origin[planes.body])  # R^T (p - o)
         local_normal = np.einsum("cji,cj->ci", Rb, planes.normal)
         state = self.rigid.flat_state() if self.pushes else None
-        return planes, ClothRigidRecord(state, origin, planes, local_point, local_normal)
+        record = ClothRigidRecord(state, origin, R, points[planes.index], planes, local_point, local_normal)
+        return planes, record
 
     def _arms(self, record: ClothRigidRecord) -> np.ndarray:
         return record.planes.point - record.origin[record.planes.body]
@@ -112,11 +119,18 @@ class ClothRigidCoupler:
         if carry is not None:  # arm = p - o
             g_point = g_point + carry
             np.add.at(g_pos, body, -carry)
-        np.add.at(g_pos, body, g_point)  # p = o + R p_l
-        outer = np.einsum("ci,cj->cij", g_point, record.local_point) + np.einsum(
-            "ci,cj->cij", g_normal, record.local_normal
+        # p = o + R p_l(x_l), n = R n_l(x_l), x_l = R^T (q - o): the plane's feature moves with the query q
+        J_p, J_n = record.planes.jacobians()
+        g_query = np.einsum("cki,ck->ci", J_p, g_point) + np.einsum("cki,ck->ci", J_n, g_normal)
+        np.add.at(g_pos, body, g_point - g_query)
+        m = record.planes.body
+        g_local = np.einsum("cki,ck->ci", record.rotation[m], g_query)  # R^T g_query
+        outer = (
+            np.einsum("ci,cj->cij", g_point, record.local_point)
+            + np.einsum("ci,cj->cij", g_normal, record.local_normal)
+            + np.einsum("ci,cj->cij", record.query - record.origin[m], g_local)
         )
-        np.add.at(g_R, body, outer)  # n = R n_l
+        np.add.at(g_R, body, outer)
         flat = self.rigid.body_states_vjp(g_pos, g_R, state=record.state)
         n = self.rigid.dofs
         return {"q": flat[:n], "qd": flat[n:]}

@@ -18,7 +18,8 @@ and dL/dA = -lam . (x_{n+1} - x^) / h^2 per free vertex (A enters G only as A (x
 Rigid contacts (``cloth_contact``): G holds -sum_i w_ij f_i, f_i the force of contact point i. The
 reactions' adjoints (dL/d(-f_i)) add (df_i/dy_i)^T dL/df_i to gbar at the point's vertices; the plane
 point, normal and the point's start position s_i then get (df_i/dtheta)^T (dL/df_i + sum_j w_ij lam_j),
-the direct path plus the solve's; s_i's goes to dL/dx_n. Output "boundaries" {source: {point, normal}}.
+the direct path plus the solve's; s_i's goes to dL/dx_n, and so does the planes' own (the planes'
+Jacobians with respect to the queried point s_i). Output "boundaries" {source: {point, normal}}.
 H_ff may be indefinite (the unprojected Hessian of a buckled cloth): it is
 factorised by a symmetric-mode LU when it is positive definite, else by LU with partial pivoting; an exactly singular H_ff raises ``SimulationError``. The
 mixin reads the engine's ``frame_dt``, ``gravity``, ``free``, ``free_dofs``, ``pres_dofs``,
@@ -92,7 +93,11 @@ class ClothAdjoint:
         planes = {}
         if contacts is not None:  # the planes and the step's start through the forces, directly and in G
             total = self.contact.force_vjp(record.x_next, contacts, g_force + self.contact.gathered(contacts, lam))
-            grad_x = grad_x + self.contact.spread(contacts, total["start"], V)
+            # a plane moves with the queried point (the contact point at the step's start) off flat faces
+            g_query = np.einsum("cki,ck->ci", contacts.point_jacobian, total["point"]) + np.einsum(
+                "cki,ck->ci", contacts.normal_jacobian, total["normal"]
+            )
+            grad_x = grad_x + self.contact.spread(contacts, total["start"] + g_query, V)
             planes = {
                 src: {"point": total["point"][rows], "normal": total["normal"][rows]}
                 for src, rows in contacts.sources.items()

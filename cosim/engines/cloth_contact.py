@@ -46,16 +46,28 @@ import numpy as np
 class ContactPlanes:
     """Contact planes of one step from one source: point ``index`` (into the cloth's contact points,
     ``RigidContact.points``) touches ``body``; the plane passes through ``point`` [m] with unit
-    ``normal`` towards the cloth."""
+    ``normal`` towards the cloth. ``point_jacobian`` and ``normal_jacobian`` (c, 3, 3): how the plane
+    point and normal move with the queried contact point (zero on a flat face; the cloth's adjoint
+    carries them to its positions at the step's start)."""
 
     index: np.ndarray  # (c,) int
     body: np.ndarray  # (c,) int
     point: np.ndarray  # (c, 3)
     normal: np.ndarray  # (c, 3)
+    point_jacobian: np.ndarray | None = None  # (c, 3, 3), None: zeros
+    normal_jacobian: np.ndarray | None = None
 
     @staticmethod
     def empty() -> ContactPlanes:
         return ContactPlanes(np.zeros(0, int), np.zeros(0, int), np.zeros((0, 3)), np.zeros((0, 3)))
+
+    def jacobians(self) -> tuple[np.ndarray, np.ndarray]:
+        """(point_jacobian, normal_jacobian), zeros where not given."""
+        zero = np.zeros((len(self.index), 3, 3))
+        return (
+            zero if self.point_jacobian is None else np.asarray(self.point_jacobian, dtype=np.float64),
+            zero if self.normal_jacobian is None else np.asarray(self.normal_jacobian, dtype=np.float64),
+        )
 
 
 @dataclass
@@ -71,6 +83,8 @@ class ContactSet:
     start: np.ndarray  # (c, 3) [m] the contact points at the step's start
     normal_force: np.ndarray  # (c,) [N] lagged, for friction
     sources: dict[str, slice]  # the rows of each source's planes
+    point_jacobian: np.ndarray  # (c, 3, 3) d(plane point)/d(start)
+    normal_jacobian: np.ndarray  # (c, 3, 3) d(normal)/d(start)
 
 
 class RigidContact:
@@ -124,6 +138,7 @@ class RigidContact:
             parts = [np.asarray(getattr(p, key), dtype=dtype).reshape(-1, *shape) for p in planes.values()]
             return np.concatenate(parts) if parts else np.zeros((0, *shape), dtype=dtype)
 
+        jacobians = [p.jacobians() for p in planes.values()] or [(np.zeros((0, 3, 3)),) * 2]
         c = ContactSet(
             face,
             weight.reshape(-1, 3),
@@ -134,6 +149,7 @@ class RigidContact:
             np.zeros((len(idx), 3)),
             np.zeros(len(idx)),
             sources,
+            *(np.concatenate(parts) if parts else np.zeros((0, 3, 3)) for parts in zip(*jacobians)),
         )
         c.start = self.contact_points(x_n, c)
         c.normal_force = c.stiffness * self.gaps(x_n, c)
