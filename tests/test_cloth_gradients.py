@@ -134,10 +134,18 @@ DRAPE = {
     "cloth": [
         {
             "name": "towel",
-            "mesh": {"type": "rectangle", "center": [0.5, BOX_TOP + 0.036, 0.5], "size": [0.3, 0.3], "resolution": [7, 7]},
+            "mesh": {
+                "type": "rectangle",
+                "center": [0.5, BOX_TOP + 0.036, 0.5],
+                "size": [0.3, 0.3],
+                "resolution": [7, 7],
+            },
             "material": {"stretch": 300, "bend": 1e-3, "density": 0.3, "damping": 20.0},
             "controls": [
-                {"name": "corners", "vertices": {"points": [[x, BOX_TOP + 0.036, z] for x in (0.35, 0.65) for z in (0.35, 0.65)]}}
+                {
+                    "name": "corners",
+                    "vertices": {"points": [[x, BOX_TOP + 0.036, z] for x in (0.35, 0.65) for z in (0.35, 0.65)]},
+                }
             ],
             "actions": {"hold": 10, "initial": [0.0, -1.0, 0.0]},
         }
