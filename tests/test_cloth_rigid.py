@@ -145,11 +145,13 @@ def test_cloth_adjoint_with_active_floor_contact_matches_central_differences():
 
 
 @pytest.mark.parametrize(
-    "width, friction, n, fall, tolerance",
-    [(1.0, 0.5, 6, 0.1, 1e-5), (0.15, 0.0, 8, 0.3, 1e-7)],
+    "width, friction, n, height, fall, tolerance",
+    [(1.0, 0.5, 6, 0.006, 0.1, 1e-5), (0.15, 0.0, 8, 0.004, 0.3, 1e-7)],
     ids=["floor-friction", "box-edges"],
 )
-def test_cloth_adjoint_with_a_moving_tilted_box_matches_central_differences(width, friction, n, fall, tolerance):
+def test_cloth_adjoint_with_a_moving_tilted_box_matches_central_differences(
+    width, friction, n, height, fall, tolerance
+):
     """A towel pressed onto a tilted box, three steps: a wide floor with friction 0.5 (the step depends
     on its start through the lagged normal force and the slip), and a box narrower than the towel
     without friction (the towel meets its edges and corners, whose planes turn with the queried point:
@@ -160,7 +162,7 @@ def test_cloth_adjoint_with_a_moving_tilted_box_matches_central_differences(widt
     25 % off), 1e-7 without."""
     floor = SimpleNamespace(type="box", size=[width, 0.1, width])
     obstacles = RigidObstacles([floor], ".", ["floor"])
-    towel = _towel(n=n, height=0.006)
+    towel = _towel(n=n, height=height)
     towel.attach_rigid_contact(0.005, friction=friction)
     rng = np.random.default_rng(5)
     start = towel.state()
