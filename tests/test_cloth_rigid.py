@@ -157,7 +157,7 @@ def test_cloth_adjoint_with_a_moving_tilted_box_matches_central_differences(
     without friction (the towel meets its edges and corners, whose planes turn with the queried point:
     ``feature_jacobians``). The adjoint of x0, v0, the box's height and its tilt about the world z axis
     (through the returned plane adjoints and their Jacobians, and the reactions' adjoints of a loss on
-    the reaction force) must match central differences: 1e-5 with friction (its Newton solves leave
+    the reaction's force and torque) must match central differences: 1e-5 with friction (its Newton solves leave
     the differences themselves uncertain at a few 1e-6; without the start's path the x0, v0 adjoint is
     25 % off), 1e-7 without."""
     floor = SimpleNamespace(type="box", size=[width, 0.1, width])
@@ -167,7 +167,7 @@ def test_cloth_adjoint_with_a_moving_tilted_box_matches_central_differences(
     rng = np.random.default_rng(5)
     start = towel.state()
     start["v"] += [0.02, -fall, 0.0]  # sliding into the box
-    wx, wv, wr = rng.normal(size=start["x"].shape), rng.normal(size=start["v"].shape), rng.normal(size=3)
+    wx, wv, wr, wt = rng.normal(size=start["x"].shape), rng.normal(size=start["v"].shape), *rng.normal(size=(2, 3))
 
     def pose(height: float, tilt: float):
         return np.array([0.0, -0.05 + height, 0.0]), so3.exp(np.array([0.0, 0.0, tilt])) @ so3.exp([0.02, 0.0, 0.01])
@@ -177,7 +177,10 @@ def test_cloth_adjoint_with_a_moving_tilted_box_matches_central_differences(
         total, records = 0.0, []
         for _ in range(3):
             out, record = towel.step(_planes(towel, obstacles, pose(height, tilt), 0.005))
-            total += float(wr @ out["reactions"]["body"].sum(axis=0))
+            on_box = out["reactions"]["body"]
+            total += float(
+                wr @ on_box["force"].sum(axis=0) + wt @ np.cross(on_box["point"], on_box["force"]).sum(axis=0)
+            )
             records.append(record)
         s = towel.state()
         return total + float(np.sum(wx * s["x"]) + np.sum(wv * s["v"])), records
@@ -190,10 +193,12 @@ def test_cloth_adjoint_with_a_moving_tilted_box_matches_central_differences(
     grad, g_height, g_tilt = {"x": wx, "v": wv}, 0.0, 0.0
     spin = np.array([0.0, 0.0, 1.0])
     for r in reversed(records):
-        out = towel.vjp(r, {"state": grad, "reactions": {"body": np.tile(wr, (len(r.contacts.face), 1))}})
+        c = r.contacts  # the loss's reaction terms: the force and its torque about the origin
+        force = -towel.contact.forces(r.x_next, c)
+        g_reactions = {"force": wr + np.cross(wt, c.point), "point": np.cross(force, wt)}
+        out = towel.vjp(r, {"state": grad, "reactions": {"body": g_reactions}})
         grad, planes = out["state"], out["boundaries"]["body"]
-        g_point, g_normal = planes["point"], planes["normal"]
-        c = r.contacts  # moving the box = moving the queried points the other way, at fixed features
+        g_point, g_normal = planes["point"], planes["normal"]  # moving the box = moving the queries the other way
         g_query = np.einsum("cki,ck->ci", c.point_jacobian, g_point) + np.einsum(
             "cki,ck->ci", c.normal_jacobian, g_normal
         )

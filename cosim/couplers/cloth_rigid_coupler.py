@@ -85,12 +85,12 @@ class ClothRigidCoupler:
     def _arms(self, record: ClothRigidRecord) -> np.ndarray:
         return record.planes.point - record.origin[record.planes.body]
 
-    def forces(self, record: ClothRigidRecord, reactions: np.ndarray) -> dict[str, np.ndarray]:
-        """{"forces": per-body wrenches (DART's bodies, 6)} of the cloth's reactions (c, 3) [N]; {} for
-        prescribed bodies."""
+    def forces(self, record: ClothRigidRecord, reactions: dict) -> dict[str, np.ndarray]:
+        """{"forces": per-body wrenches (DART's bodies, 6)} of the cloth's reactions {"force" (c, 3) [N],
+        "point"}; {} for prescribed bodies."""
         if not self.pushes:
             return {}
-        record.reactions = np.asarray(reactions, dtype=np.float64).reshape(-1, 3)
+        record.reactions = np.asarray(reactions["force"], dtype=np.float64).reshape(-1, 3)
         body = self.bodies[record.planes.body]
         wrenches = np.zeros((len(self.rigid.body_names), 6))
         np.add.at(wrenches[:, :3], body, np.cross(self._arms(record), record.reactions))
@@ -98,14 +98,15 @@ class ClothRigidCoupler:
         return {"forces": wrenches}
 
     def forces_vjp(self, record: ClothRigidRecord, grad_load: dict, grad_state: None = None) -> tuple:
-        """dL/d(wrenches) -> (dL/d(reactions) (c, 3), dL/d(torque arms) carried to ``boundary_vjp``, None)."""
+        """dL/d(wrenches) -> (dL/d(reactions) {"force", "point"} (c, 3) each, dL/d(torque arms) carried to
+        ``boundary_vjp`` for the origins, None)."""
         if not self.pushes or grad_load.get("forces") is None:
             return None, None, None
         g = np.asarray(grad_load["forces"], dtype=np.float64)[self.bodies[record.planes.body]]
         g_torque, g_force = g[:, :3], g[:, 3:]
         g_reactions = g_force + np.cross(g_torque, self._arms(record))  # d/dF of gt . (r x F) = gt x r
-        g_arms = np.cross(record.reactions, g_torque)  # d/dr of gt . (r x F) = F x gt
-        return g_reactions, g_arms, None
+        g_arms = np.cross(record.reactions, g_torque)  # d/dr of gt . (r x F) = F x gt, r = p - o
+        return {"force": g_reactions, "point": g_arms}, g_arms, None
 
     def boundary_vjp(self, record: ClothRigidRecord, grad_boundary: dict, carry) -> dict[str, np.ndarray]:
         """dL/d(planes) {"point", "normal"} (c, 3) and the torque arms' adjoint -> dL/ds of the rigid engine."""
@@ -116,8 +117,7 @@ class ClothRigidCoupler:
         body = self.bodies[record.planes.body]
         nb = len(self.rigid.body_names)
         g_pos, g_R = np.zeros((nb, 3)), np.zeros((nb, 3, 3))
-        if carry is not None:  # arm = p - o
-            g_point = g_point + carry
+        if carry is not None:  # the torque arms p - o: p's part came back through the cloth with the planes'
             np.add.at(g_pos, body, -carry)
         # p = o + R p_l(x_l), n = R n_l(x_l), x_l = R^T (q - o): the plane's feature moves with the query q
         J_p, J_n = record.planes.jacobians()

@@ -229,8 +229,8 @@ class ClothEngine(ClothAdjoint, ClothSolver):
 
     def step(self, inputs: dict) -> tuple[dict, ClothRecord]:
         """One frame: ``inputs`` action, forces, added_mass, boundaries {source: ContactPlanes} (each
-        None or see the module docstring). Returns ({"state": state after, "reactions": {source: (c, 3)
-        [N] the force on the rigid body at each plane point}}, record)."""
+        None or see the module docstring). Returns ({"state": state after, "reactions": {source: {"force":
+        (c, 3) [N] on the rigid body, "point": (c, 3) [m] where it acts (the plane points)}}}, record)."""
         action, forces, added = self._inputs(inputs.get("action"), inputs.get("forces"), inputs.get("added_mass"))
         x_n, v_n, mat = self.x, self.v, self._material
         data = self._step_data(x_n, v_n, forces, mat, added)
@@ -250,7 +250,10 @@ class ClothEngine(ClothAdjoint, ClothSolver):
         outputs = {"state": self.state()}
         if data.contacts is not None:
             on_bodies = -self.contact.forces(x_next, data.contacts)
-            outputs["reactions"] = {src: on_bodies[rows] for src, rows in data.contacts.sources.items()}
+            outputs["reactions"] = {
+                src: {"force": on_bodies[rows], "point": data.contacts.point[rows]}
+                for src, rows in data.contacts.sources.items()
+            }
         return outputs, record
 
     def _inputs(self, action, forces, added=None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:

@@ -16,7 +16,7 @@ of x_{n+1} is gbar = gx + gv / h, and one solve H_ff lam = gbar_f gives (m the l
 (a_v the vertex areas; M = m + A the inertia with a coupling's added mass A, ``cosim.couplers.mpm_cloth``),
 and dL/dA = -lam . (x_{n+1} - x^) / h^2 per free vertex (A enters G only as A (x - x^) / h^2).
 Rigid contacts (``cloth_contact``): G holds -sum_i w_ij f_i, f_i the force of contact point i. The
-reactions' adjoints (dL/d(-f_i)) add (df_i/dy_i)^T dL/df_i to gbar at the point's vertices; the plane
+reactions' adjoints ("force": dL/d(-f_i); "point": dL/d(where it acts), the plane point passed on) add (df_i/dy_i)^T dL/df_i to gbar at the point's vertices; the plane
 point, normal and the point's start position s_i then get (df_i/dtheta)^T (dL/df_i + sum_j w_ij lam_j),
 the direct path plus the solve's; s_i's goes to dL/dx_n, and so does the planes' own (the planes'
 Jacobians with respect to the queried point s_i). Output "boundaries" {source: {point, normal}}.
@@ -46,7 +46,7 @@ class ClothAdjoint:
     """``vjp`` of the cloth engine."""
 
     def vjp(self, record, grad_outputs: dict) -> dict:
-        """{"state": {"x", "v"}, "reactions": {source: (c, 3)}} (dL/d(outputs), missing keys zero) ->
+        """{"state": {"x", "v"}, "reactions": {source: {"force", "point"}}} (dL/d(outputs), missing keys zero) ->
         {"state": {"x", "v"}, "action", "forces", "added_mass", "boundaries", "material"} of the recorded
         step (see the module docstring)."""
         V, h, mat = self.mesh.n_vertices, self.frame_dt, record.material
@@ -55,9 +55,11 @@ class ClothAdjoint:
         gv = np.zeros((V, 3)) if grads.get("v") is None else np.asarray(grads["v"], dtype=np.float64)
         contacts = record.contacts
         if contacts is not None:  # dL/df of the contact points, from the reactions' adjoints (reaction = -f)
-            g_force = np.zeros((len(contacts.face), 3))
+            g_force, g_at = np.zeros((len(contacts.face), 3)), np.zeros((len(contacts.face), 3))
             for source, g in (grad_outputs.get("reactions") or {}).items():
-                g_force[contacts.sources[source]] -= g
+                g_force[contacts.sources[source]] -= g["force"]
+                if g.get("point") is not None:  # where the reaction acts: the plane point, an input passed on
+                    g_at[contacts.sources[source]] += g["point"]
             direct = self.contact.force_vjp(record.x_next, contacts, g_force)["y"]
             gx = gx + self.contact.spread(contacts, direct, V)
         gbar = gx + gv / h
@@ -93,6 +95,7 @@ class ClothAdjoint:
         planes = {}
         if contacts is not None:  # the planes and the step's start through the forces, directly and in G
             total = self.contact.force_vjp(record.x_next, contacts, g_force + self.contact.gathered(contacts, lam))
+            total["point"] = total["point"] + g_at
             # a plane moves with the queried point (the contact point at the step's start) off flat faces
             g_query = np.einsum("cki,ck->ci", contacts.point_jacobian, total["point"]) + np.einsum(
                 "cki,ck->ci", contacts.normal_jacobian, total["normal"]
