@@ -1,19 +1,25 @@
-"""The runner's conservation checks: the MPM's energy may not grow beyond its start plus the work done
-on it, and the liquids' volume is tracked.
+"""The runner's conservation checks: the coupled system's energy may not grow beyond its start plus the
+work done on it, and the liquids' volume is tracked.
 
-Work done on the material, summed every macro step:
-- each boundary source's contact work (``work(states, reactions)``): for a rigid body
-  -sum_k (J_k . v_k + L_k . w_k) over the substeps (J, L the reaction on the body, exact for a rigid
-  velocity field); for a cloth -sum impulse . v over its vertices;
+The system's energy: the MPM's (kinetic, gravity, strain) plus every engine's that declares ``energy``
+(``cosim.engines.contract``): a cloth's kinetic, elastic and gravity energy, DART's skeletons that no
+action drives (DART's kinetic and potential energy). Contact between two budgeted parts is internal.
+Work done on the system, summed every macro step, by what the budget does not hold:
+- bodies whose motion is prescribed or driven (kinematic bodies, driven DART skeletons) on the material
+  through contact (each MPM coupler's ``external_work``: for a rigid body -sum_k (J_k . v_k + L_k . w_k)
+  over the substeps, J, L the reaction on the body, exact for a rigid velocity field) and on a cloth
+  (the cloth-rigid couplers': minus the reaction times the body's velocity at the plane point, per frame);
+- an engine's own prescribed parts (a cloth's controlled vertices: ``external_work`` of its step);
 - the control impulses I on particles of mass m and velocity v: sum I . v + |I|^2 / 2m.
 Gravity is inside the energy (its potential), so a falling body does no "work".
 
-The energies and volumes are the engine's (``MPMEngine.energies``, summed on the device), of its current
-state: ``begin_step`` is called before a step, ``end_step`` after it.
+The MPM's energies and volumes are the engine's (``MPMEngine.energies``, summed on the device), of its
+current state: ``begin_step`` is called before a step, ``end_step`` after every engine stepped.
 
 After every macro step of a rollout that runs from step 0, E(t) > E(0) + W(t) + ``MARGIN`` * scale
-stops the run with a ``SimulationError`` naming the body whose energy grew most; scale = E(0) above
-its floor (all mass at the domain's lowest point) plus sum |W|. Replays from a checkpoint (set_state to
+stops the run with a ``SimulationError`` naming the body or engine whose energy grew most; scale = E(0)
+above its floor (all mass at the domain's lowest point) plus sum |W|. A light body flung by the
+material it touches (an unstable exchange) gains energy no work explains and is caught here. Replays from a checkpoint (set_state to
 step k > 0) are steps already checked and are skipped. The check reads one small per-body table summed on
 the device: one kernel launch for a small scene; for a large one the strain energy's polar decompositions,
 a few percent of a step.
@@ -56,22 +62,24 @@ FIRST_STEP = (
 class Conservation:
     """Energy budget and liquid volume of one rollout of an MPM engine (``cosim.engines.mpm``)."""
 
-    def __init__(self, engine, gravity, domain, share: float = MARGIN):
+    def __init__(self, engine, gravity, domain, share: float = MARGIN, others: dict | None = None):
         self.engine = engine
+        self.others = dict(others or {})  # {name: engine declaring "energy"}, in the budget besides the MPM
         self.work = 0.0
         self.excess = None
         self.gravity = np.asarray(gravity, dtype=np.float64)
         self.share = share  # inf: measured, never stops a run (a benchmark that counts failures)
         corners = np.array(list(itertools.product(*[(0.0, float(L)) for L in domain])))
         # the lowest potential any particle can have: -g . x at the domain corner furthest along g
-        self.floor = -float(engine.mass.sum()) * float((corners @ self.gravity).max())
+        mass = float(engine.mass.sum()) + sum(e.energy_and_mass()[1] for e in self.others.values())
+        self.floor = -mass * float((corners @ self.gravity).max())
         self._next = None  # the step expected next; None: inactive until a rollout starts at step 0
         self.liquids = [b.name for b in engine.bodies if b.material == "liquid"]
         self.volume_ratio = (1.0, 1.0)  # (min, max) of the liquids' volume over their initial volume
 
     def start(self) -> None:
         """A rollout begins from the engine's current state (step 0)."""
-        self.initial = self.engine.energies()
+        self.initial = self._energies()
         self.E0 = sum(e["total"] for e in self.initial.values())
         self.work = self.work_abs = 0.0
         self.excess = None  # the largest (E - E0 - W) / scale seen (negative: energy dissipated), None before a check
@@ -97,7 +105,7 @@ class Conservation:
         if self._next is None:
             return
         self._next = step_index + 1
-        now = self.engine.energies()
+        now = self._energies()
         self._track_volume(now)
         E = sum(e["total"] for e in now.values())
         scale = max(self.E0 - self.floor, 0.0) + self.work_abs
@@ -107,14 +115,28 @@ class Conservation:
         self.excess = excess if self.excess is None else max(self.excess, excess)
         if excess > self.share:
             body = max(now, key=lambda n: now[n]["total"] - self.initial[n]["total"])
-            grown = {k: now[body][k] - self.initial[body][k] for k in ("kinetic", "strain", "gravity")}
+            if body in self.others:
+                gained = f"engine '{body}' gained most ({now[body]['total'] - self.initial[body]['total']:+.3g} J)"
+                fix = "a body much lighter than the material pushing it is flung by the exchange (make it heavier)"
+            else:
+                grown = {k: now[body][k] - self.initial[body][k] for k in ("kinetic", "strain", "gravity")}
+                gained = (
+                    f"body '{body}' gained most (kinetic {grown['kinetic']:+.3g} J, strain "
+                    f"{grown['strain']:+.3g} J, gravity {grown['gravity']:+.3g} J)"
+                )
+                fix = "lower time.cfl or raise time.substeps, or soften the contact"
             raise SimulationError(
                 f"step {step_index}: the energy grew to {E:.4g} J from {self.E0:.4g} J at the start plus "
-                f"{self.work:.4g} J of work done on the material; body '{body}' gained most (kinetic "
-                f"{grown['kinetic']:+.3g} J, strain {grown['strain']:+.3g} J, gravity {grown['gravity']:+.3g} J): "
-                "the simulation is unstable; lower time.cfl or raise time.substeps, or soften the contact"
+                f"{self.work:.4g} J of work done on the system; {gained}: the simulation is unstable; {fix}"
                 + (FIRST_STEP if step_index == 0 else "")
             )
+
+    def _energies(self) -> dict[str, dict[str, float]]:
+        """{MPM body or engine name: {"total", ...}} [J] of the current states."""
+        out = self.engine.energies()
+        for name, e in self.others.items():
+            out[name] = {"total": e.energy_and_mass()[0]}
+        return out
 
     def _liquid_volume(self, energies: dict[str, dict[str, float]]) -> float:
         """[m^3, 2D: m^2] sum V0 det F over the liquids' particles, from ``MPMEngine.energies``."""

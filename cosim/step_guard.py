@@ -2,8 +2,8 @@
 
 Per macro step: the substep count from the CFL bound (or a fixed count, checked against the
 material's stability bound) and the retry with twice the substeps while a step breaks the bound;
-NaN/inf in the material at the substep it appeared; particles leaving the grid; the energy budget
-(``cosim.conservation``); rigid-body origins and cloth vertices leaving the grid (engines that
+NaN/inf in the material at the substep it appeared; particles leaving the grid; the energy budget of
+the whole coupled system (``cosim.conservation``); rigid-body origins and cloth vertices leaving the grid (engines that
 declare ``points``); particles through a rigid body (``cosim.couplers.tunnelling``). Each stops the
 run with a ``SimulationError`` naming the step, the body and the quantity, and a fix.
 """
@@ -26,7 +26,8 @@ class StepGuard:
 
     def __init__(self, system):
         self.system = system
-        self.conservation = Conservation(system.mpm, system.gravity, system.domain)
+        budgeted = {name: e for name, e in system.engines.items() if declares(e, "energy")}
+        self.conservation = Conservation(system.mpm, system.gravity, system.domain, others=budgeted)
         self.passed_through: dict[str, int] = {}  # "body/rigid body": particles that went through it
         self.tunnel_share = TUNNEL_SHARE  # inf: count only (a benchmark measuring the contact's failures)
         self.max_cfl = 0.0
@@ -101,14 +102,25 @@ class StepGuard:
         if not self._tracked:
             return
         cons = self.conservation
-        for name, states in boundaries.items():
-            cons.add_work(s.mpm.boundaries[name].work(states, outputs["reactions"][name]))
+        for c in s.mpm_couplers:  # contact work of bodies outside the budget (prescribed, driven) is external
+            per_body = s.mpm.boundaries[c.source].work(boundaries[c.source], outputs["reactions"][c.source])
+            cons.add_work(float(np.sum(per_body * ~np.asarray(c.budgeted()))))
         if mpm_record.impulse is not None:
             cons.add_work(control_work(mpm_record.impulse, mpm_record.state["v"], s.mpm.mass))
-        cons.end_step(s.step_index)
 
-    def end_step(self) -> None:
-        """After every engine stepped: their points within the grid, particles through rigid bodies."""
+    def end_step(self, engine_records: dict, coupler_records: dict) -> None:
+        """After every engine stepped: the energy budget of the whole system (with the work the engines'
+        prescribed parts and the bodies outside the budget did on them), their points within the grid,
+        particles through rigid bodies."""
+        s = self.system
+        if self._tracked:
+            cons = self.conservation
+            for name, e in s.engines.items():
+                if declares(e, "energy"):
+                    cons.add_work(e.external_work(engine_records[name]))
+                for c in s.engine_couplers[name]:
+                    cons.add_work(c.external_work(coupler_records[c.name], s.frame_dt))
+            cons.end_step(s.step_index)
         self._check_engine_domain()
         if self.tunnels is not None and self._tracked:  # the bodies have moved too: their poses now end the step
             self._check_tunnelling(self._poses)

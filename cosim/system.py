@@ -207,7 +207,7 @@ class CoupledSystem:
         with self._timed("couplers"):  # reactions -> each engine's load (forces, added mass)
             loads = self._loads(coupler_records, outputs["reactions"])
         engine_records = self._step_engines(loads, actions, coupler_records)
-        guard.end_step()
+        guard.end_step(engine_records, coupler_records)
         self.step_index += 1
         self.last = StepRecord(t0, mpm_record, engine_records, coupler_records, {"reactions": outputs["reactions"]})
         return self.last

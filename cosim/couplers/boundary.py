@@ -139,13 +139,13 @@ class RigidBoundaries:
                 angular[s, b, i] = self.angular_impulse[s, b][i]
 
     @staticmethod
-    def work(states: dict[str, np.ndarray], reactions: dict[str, np.ndarray]) -> float:
-        """[J] Work the bodies did on the material over a macro step: -sum_k (J_k . v_k + L_k . w_k),
+    def work(states: dict[str, np.ndarray], reactions: dict[str, np.ndarray]) -> np.ndarray:
+        """(m,) [J] Work each body did on the material over a macro step: -sum_k (J_k . v_k + L_k . w_k),
         exact for a rigid body's velocity field (twists at each substep's start)."""
         K = len(reactions["impulse"])
-        return -float(
-            np.sum(reactions["impulse"] * states["vel"][:K])
-            + np.sum(reactions["angular_impulse"] * states["omega"][:K])
+        return -(
+            np.sum(reactions["impulse"] * states["vel"][:K], axis=(0, 2))
+            + np.sum(reactions["angular_impulse"] * states["omega"][:K], axis=(0, 2))
         )
 
     def reactions(self, K: int) -> dict[str, np.ndarray]:

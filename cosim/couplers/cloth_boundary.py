@@ -300,10 +300,10 @@ class ClothBoundary:
         self._blend(src, s % self.slots)
 
     @staticmethod
-    def work(states: dict, reactions: dict) -> float:
-        """[J] Work the cloth did on the material over a macro step: -sum impulse . v over its vertices
+    def work(states: dict, reactions: dict) -> np.ndarray:
+        """(1,) [J] Work the cloth did on the material over a macro step: -sum impulse . v over its vertices
         (their velocities are held over the step)."""
-        return -float(np.sum(reactions["impulse"] * np.asarray(states["v"])))
+        return np.array([-float(np.sum(reactions["impulse"] * np.asarray(states["v"])))])
 
     def reactions(self, K: int) -> dict:
         """{"impulse": (V, 3) [N s] over the macro step, "tracking": the state after its last substep,

@@ -37,6 +37,7 @@ class ClothRigidRecord:
     state: np.ndarray | None  # the rigid engine's flat state at the step's start (DART), else None
     origin: np.ndarray  # (m, 3) [m] the coupled bodies' origins
     rotation: np.ndarray  # (m, 3, 3) body to world
+    twist: np.ndarray  # (m, 2, 3) [m/s; rad/s] origin velocity and angular velocity
     query: np.ndarray  # (c, 3) [m] the queried contact points
     planes: ContactPlanes
     local_point: np.ndarray  # (c, 3) [m] each plane point in its body's frame
@@ -58,17 +59,25 @@ class ClothRigidCoupler:
         self.medium, self.engine = cloth.name, rigid.name
         self.pushes = declares(rigid, "body_states")  # DART takes the reactions; prescribed bodies none
 
-    def _poses(self) -> tuple[np.ndarray, np.ndarray]:
-        """(origins (m, 3), rotations (m, 3, 3)) of the coupled bodies now."""
+    def _poses(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(origins (m, 3), rotations (m, 3, 3), twists (m, 2, 3)) of the coupled bodies now."""
         if self.pushes:
             s = self.rigid.body_states()
-            return s["position"][self.bodies], s["rotation"][self.bodies]
-        poses = self.rigid.poses()
-        return (np.array([poses[i][0] for i in self.bodies]), np.array([poses[i][1] for i in self.bodies]))
+            b = self.bodies
+            return s["position"][b], s["rotation"][b], np.stack([s["linear_velocity"][b], s["angular_velocity"][b]], 1)
+        poses, t = self.rigid.poses(), self.rigid.time
+        twists = [self.rigid.motions[i].twist(t) for i in self.bodies]
+        return (
+            np.array([poses[i][0] for i in self.bodies]),
+            np.array([poses[i][1] for i in self.bodies]),
+            np.array([[np.asarray(v, float), np.broadcast_to(np.asarray(w, float), 3)] for v, w in twists]).reshape(
+                -1, 2, 3
+            ),
+        )
 
     def boundary(self, dt: float, substeps: int) -> tuple[ContactPlanes, ClothRigidRecord]:
         """The contact planes of the cloth's current points against the bodies at their current poses."""
-        origin, R = self._poses()
+        origin, R, twist = self._poses()
         points = self.cloth.contact.points(self.cloth.x)
         # speculative: a point that may reach the contact layer within the frame gets its plane now, so the
         # implicit step stops it at the layer (without, it enters unopposed and is pushed back out at its
@@ -79,7 +88,7 @@ class ClothRigidCoupler:
         local_point = np.einsum("cji,cj->ci", Rb, planes.point - origin[planes.body])  # R^T (p - o)
         local_normal = np.einsum("cji,cj->ci", Rb, planes.normal)
         state = self.rigid.flat_state() if self.pushes else None
-        record = ClothRigidRecord(state, origin, R, points[planes.index], planes, local_point, local_normal)
+        record = ClothRigidRecord(state, origin, R, twist, points[planes.index], planes, local_point, local_normal)
         return planes, record
 
     def _arms(self, record: ClothRigidRecord) -> np.ndarray:
@@ -88,14 +97,27 @@ class ClothRigidCoupler:
     def forces(self, record: ClothRigidRecord, reactions: dict) -> dict[str, np.ndarray]:
         """{"forces": per-body wrenches (DART's bodies, 6)} of the cloth's reactions {"force" (c, 3) [N],
         "point"}; {} for prescribed bodies."""
+        record.reactions = np.asarray(reactions["force"], dtype=np.float64).reshape(-1, 3)
         if not self.pushes:
             return {}
-        record.reactions = np.asarray(reactions["force"], dtype=np.float64).reshape(-1, 3)
         body = self.bodies[record.planes.body]
         wrenches = np.zeros((len(self.rigid.body_names), 6))
         np.add.at(wrenches[:, :3], body, np.cross(self._arms(record), record.reactions))
         np.add.at(wrenches[:, 3:], body, record.reactions)
         return {"forces": wrenches}
+
+    def external_work(self, record: ClothRigidRecord, frame_dt: float) -> float:
+        """[J] Work the bodies outside the energy budget (prescribed, or of a driven skeleton) did on the cloth
+        over the frame: minus each reaction on the body times the body's velocity at the plane point."""
+        outside = (
+            ~self.rigid.passive_bodies()[self.bodies]
+            if declares(self.rigid, "energy")
+            else np.ones(len(self.bodies), bool)
+        )
+        m = record.planes.body
+        v, w = record.twist[m, 0], record.twist[m, 1]
+        at_plane = v + np.cross(w, self._arms(record))
+        return -frame_dt * float(np.sum(outside[m] * np.einsum("ck,ck->c", record.reactions, at_plane)))
 
     def forces_vjp(self, record: ClothRigidRecord, grad_load: dict, grad_state: None = None) -> tuple:
         """dL/d(wrenches) -> (dL/d(reactions) {"force", "point"} (c, 3) each, dL/d(torque arms) carried to

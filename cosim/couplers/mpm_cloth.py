@@ -152,5 +152,9 @@ class MPMClothCoupler:
         before = {"boundary_v": -owed, "added_mass": np.sum(g * record.catch_up, axis=1)}
         return {"impulse": g, "mass": g_mass}, {"v": carry + owed}, before
 
+    def budgeted(self) -> bool:
+        """The cloth's energy is in the system's budget: its contact work on the material is internal."""
+        return True
+
     def boundary_vjp(self, record: ClothCouplingRecord, grad_boundary: dict, carry: dict) -> dict[str, np.ndarray]:
         return {"x": grad_boundary["x"], "v": grad_boundary["v"] + carry["v"]}

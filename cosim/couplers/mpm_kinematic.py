@@ -24,6 +24,10 @@ class MPMKinematicCoupler:
         """Poses and twists of the motions at the start of each substep of the current frame."""
         return kinematic_states(self.kinematic.motions, self.kinematic.time, dt, substeps), None
 
+    def budgeted(self) -> bool:
+        """Prescribed motions: the energy budget does not hold them; their contact work is external."""
+        return False
+
     def forces(self, record: None, reactions: dict) -> dict:
         return {}
 

@@ -144,6 +144,11 @@ class MPMRigidCoupler:
         self.engine = rigid.name
         self.medium = "mpm"
 
+    def budgeted(self) -> np.ndarray:
+        """(m,) bool: which coupled bodies' energy is in the system's budget (no action drives their
+        skeleton), so that their contact work on the material is internal."""
+        return self.rigid.passive_bodies()[self.coupled]
+
     def current_bodies(self) -> BodyStates:
         s = self.rigid.body_states()
         c = self.coupled

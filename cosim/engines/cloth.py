@@ -110,7 +110,7 @@ class ClothRecord:
 class ClothEngine(ClothAdjoint, ClothSolver):
     """A triangle-mesh cloth (see the module docstring); conforms to ``cosim.engines.contract.Engine``."""
 
-    capabilities = frozenset({"points", "surface_speed", "material", "mesh"})
+    capabilities = frozenset({"points", "surface_speed", "material", "mesh", "energy"})
 
     def __init__(
         self,
@@ -167,6 +167,23 @@ class ClothEngine(ClothAdjoint, ClothSolver):
         """Let the cloth collide with rigid bodies (``cosim.engines.cloth_contact``): contact thickness
         [m] and friction coefficient mu; each step's planes come as the input "boundaries"."""
         self.contact = RigidContact(self.mesh.faces, self.masses(), self.frame_dt, thickness, friction)
+
+    def energy_and_mass(self) -> tuple[float, float]:
+        """(kinetic + elastic + gravity energy [J], mass [kg]) now."""
+        m = self.masses()
+        kinetic = 0.5 * float(np.sum(m[:, None] * self.v**2))
+        return kinetic + self.elastic_energy(self.x) - float(np.sum(m[:, None] * self.gravity * self.x)), float(m.sum())
+
+    def external_work(self, record: ClothRecord) -> float:
+        """[J] Work the prescribed (fixed, controlled) vertices did on the cloth in the recorded step: the
+        force holding each on its path (grad E at the end of the step, its inertia without added mass)
+        times its displacement."""
+        if self.free.all():
+            return 0.0
+        data = self._step_data(record.x, record.v, record.forces, record.material)
+        data.contacts = record.contacts
+        held = self._gradient(record.x_next, data)[~self.free]
+        return float(np.sum(held * (record.x_next - record.x)[~self.free]))
 
     def _indices(self, idx, what: str) -> np.ndarray:
         idx = np.asarray(idx, dtype=np.int64).reshape(-1)

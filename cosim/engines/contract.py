@@ -173,6 +173,11 @@ CAPABILITIES = {
     "material": "material() -> {key: 0-d array} and set_parameters(values): material parameters",
     "material_grads": "a material_grads flag: its vjp skips material gradients while False",
     "mesh": "mesh (a ClothMesh) and state x, v (V, 3): a triangle mesh whose vertices losses and previews read",
+    "energy": "energy_and_mass() -> (energy [J], mass [kg]) of its parts no action drives (kinetic, gravity, elastic), "
+    "external_work(record) -> [J] the work its own prescribed parts did in that step, and for rigid engines "
+    "passive_bodies() -> (bodies,) bool: it is in the runner's energy budget (``cosim.conservation``); an MPM "
+    "coupler's budgeted() says which of its bodies are, a coupler whose medium is an engine reports "
+    "external_work(record, frame_dt) of the bodies that are not",
     "body_states": "body_names, body_states() (per body position, rotation, velocities), flat_state(), dofs and "
     "body_states_vjp(...): rigid bodies a coupler pushes with wrenches (forces (bodies, 6)) and differentiates",
     # couplers

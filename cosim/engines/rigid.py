@@ -63,7 +63,7 @@ class RigidEngine(RigidAdjoint):
     """One DART world holding the given skeletons (deactivation off, so replay from a state is bitwise),
     and ``ground``, a static floor the colliding skeletons rest on (needs ``collision``)."""
 
-    capabilities = frozenset({"points", "body_states"})
+    capabilities = frozenset({"points", "body_states", "energy"})
 
     def __init__(
         self,
@@ -314,6 +314,27 @@ class RigidEngine(RigidAdjoint):
                 )
 
     # ------------------------------------------------------------------------------------ body states
+
+    # ------------------------------------------------------------------------------ energy budget
+    def _driven(self) -> set[int]:
+        return {c.skel for c in self.controls}
+
+    def energy_and_mass(self) -> tuple[float, float]:
+        """(kinetic + potential energy [J] (gravity, joint springs: DART's), mass [kg]) of the skeletons no
+        action drives; a driven skeleton's energy is the actions' business, its contacts' work external."""
+        driven = self._driven()
+        passive = [s for k, s in enumerate(self.skeletons) if k not in driven]
+        energy = sum(s.computeKineticEnergy() + s.computePotentialEnergy() for s in passive)
+        return float(energy), float(sum(s.getMass() for s in passive))
+
+    def passive_bodies(self) -> np.ndarray:
+        """(len(body_names),) bool: bodies of skeletons no action drives (in the energy budget)."""
+        driven = self._driven()
+        return np.array([k not in driven for k, _body in self._bodies], dtype=bool)
+
+    def external_work(self, record) -> float:
+        """[J] Work done on the budgeted skeletons by their own actions in the recorded step: none."""
+        return 0.0
 
     def points(self) -> np.ndarray:
         """(bodies, 3) [m] the body origins, which must stay in the MPM's domain if they start in it."""
