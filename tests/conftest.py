@@ -17,6 +17,7 @@ SCENES = ROOT / "scenes"
 # loadfile hands files to the two workers in collection order, and a long file started last leaves the
 # other worker idle; short files at the end even the two out.
 LONGEST_FIRST = (
+    "test_scene_gradients",
     "test_cli",
     "test_coupling",
     "test_sweep",

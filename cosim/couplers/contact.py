@@ -24,7 +24,6 @@ from cosim.couplers.contact_rules import (
     TAPER,
     default_alpha,
     frictional_bc,
-    soft_ramp,
     source_offset,
     speculative_bc,
     surface_offset,
@@ -32,6 +31,7 @@ from cosim.couplers.contact_rules import (
 from cosim.engines import field_pool
 from cosim.engines.contract import declares, traits_of
 from cosim.engines.data_oriented import data_oriented
+from cosim.engines.smooth import soft_ramp
 
 
 @data_oriented

@@ -14,12 +14,12 @@ from cosim.couplers.contact_rules import (
     SOLID_SOFT,
     occupancy,
     reach_of_fill,
-    soft_ramp,
     speculative_bc,
 )
 from cosim.engines import field_pool
 from cosim.engines.contract import declares, traits_of
 from cosim.engines.data_oriented import data_oriented
+from cosim.engines.smooth import soft_ramp
 
 
 @data_oriented

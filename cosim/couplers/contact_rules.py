@@ -5,6 +5,7 @@ default step. Kernels of ``cosim.couplers.contact`` inline them."""
 import taichi as ti
 
 from cosim.engines.contract import traits_of
+from cosim.engines.smooth import soft_ramp
 
 STANDARD_GRAVITY = 9.80665  # [m/s^2] the unit of the particle model's stiffness
 BLEND_WHERE = ("liquids", "all", "none")  # forecast: which particles get the paper's blended BC_p
@@ -59,20 +60,6 @@ def source_offset(source, offset: float) -> float:
     """The offset [m] (AUTO_OFFSET: the particle's radius) a contact model keeps from ``source``: 0 from
     a source whose ``ContactTraits.offset`` is False (a cloth sheet, whose contact keeps the paper's form)."""
     return offset if traits_of(source).offset else 0.0
-
-
-@ti.func
-def soft_ramp(z, width):
-    """max(z, 0) made C2 over ``width`` without ever exceeding it (no push or limit adds energy):
-    width u^3 (6 - 8u + 3u^2) with u = z / width on (0, width), exact outside; width 0: max(z, 0).
-
-    C2, not C1: contact states sit exactly at a ramp's start (the speculative limit lands a particle
-    on the surface, so the next substep's projection starts at 0), and a C1 ramp's second derivative
-    jumps there, so central differences of any loss through contact erred by O(step): pull_door's
-    30-step gradcheck gave 2e-5 at step 1e-6 and 2.7e-6 at 1e-7 with a cubic ramp, 1.6e-7 at 1e-6
-    with this one."""
-    u = ti.min(ti.max(z, 0.0), width) / ti.max(width, 1e-30)
-    return width * u * u * u * (6.0 - 8.0 * u + 3.0 * u * u) + ti.max(z - width, 0.0)
 
 
 @ti.func

@@ -34,6 +34,9 @@ from cosim.engines.mpm_inputs import MPMConfig, ParticleBody, particle_capacity
 from cosim.engines.mpm_slot_io import SlotIO
 from cosim.engines.mpm_stencil import StencilFunctions, stencil_rows
 from cosim.engines.mpm_watch import ParticleWatch
+from cosim.engines.smooth import soft_ramp
+
+WALL_SOFT = 1e-4  # [m/s] the domain walls' removal of an approach is rounded over this speed (``_grid_update``)
 
 
 @data_oriented
@@ -295,13 +298,21 @@ class MPMKernels(StencilFunctions, SlotIO):
                 vel = self.node_momentum(g, I) / m + dt * self.gravity
                 if ti.static(self.cfg.wall != "none"):
                     for k in ti.static(range(self.dim)):
-                        low = I[k] < self.cfg.wall_cells and vel[k] < 0
-                        high = I[k] > self.nodes[k] - 1 - self.cfg.wall_cells and vel[k] > 0
-                        if low or high:
+                        # in a wall's band, the speed towards the wall is taken away (slip) or the whole
+                        # velocity (sticky), rounded over WALL_SOFT (``soft_ramp``: C2 where a node at rest
+                        # against a wall starts to approach it, never more than the exact projection)
+                        toward = 0.0
+                        if I[k] < self.cfg.wall_cells:
+                            toward = -1.0
+                        elif I[k] > self.nodes[k] - 1 - self.cfg.wall_cells:
+                            toward = 1.0
+                        approach = toward * vel[k]
+                        if approach > 0:
+                            removed = soft_ramp(approach, WALL_SOFT)
                             if ti.static(self.cfg.wall == "sticky"):
-                                vel = ti.Vector.zero(float, self.dim)
+                                vel *= 1.0 - removed / approach
                             else:
-                                vel[k] = 0.0
+                                vel[k] -= toward * removed
             self.grid_v[g, I] = vel
             if ti.static(self._fused_clear()):
                 # forward-only: leave the grid cleared for the next P2G (saves a pass);
