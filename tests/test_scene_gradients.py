@@ -16,6 +16,9 @@ SCENES_3D = {
     "push_towel": 100,
     "squeeze_plasticine": 150,
     "pour_water": 200,
+    "pour_franka": 250,
+    "jelly_torus_3d": 120,
+    "plastic_squash_3d": 100,
 }
 
 

@@ -3,8 +3,10 @@
 One macro step n (the cloth steps before DART, so the reaction acts in the same frame):
 
     boundary    the cloth's contact points (vertices, face centroids) at x^n within the contact
-                thickness of a body (plus twice the farthest a vertex moves in the frame), asked of python-fcl at the bodies' poses at the step's start
-                (``RigidObstacles``), become contact planes: the cloth's input "boundaries";
+                thickness of a body (plus twice the farthest a vertex moves in the frame), asked of
+                python-fcl at the bodies' poses at the step's start (``RigidObstacles``), become contact
+                planes with the body's surface velocity under each point (friction is relative to it):
+                the cloth's input "boundaries";
     cloth       steps with them as stiff penalties (``cosim.engines.cloth_contact``); its output
                 "reactions" are the forces it exerts on the bodies at the plane points;
     forces      DART: per body the wrench [torque about the body origin o; force] of those forces;
@@ -84,8 +86,11 @@ class ClothRigidCoupler:
         # own speed the next frame: an elastic bounce)
         reach = 2.0 * dt * float(np.linalg.norm(self.cloth.v, axis=1).max(initial=0.0))
         planes = self.obstacles.planes(points, list(zip(origin, R)), self.thickness + reach)
-        Rb = R[planes.body]
-        local_point = np.einsum("cji,cj->ci", Rb, planes.point - origin[planes.body])  # R^T (p - o)
+        Rb, spin = R[planes.body], twist[planes.body, 1]
+        arms = planes.point - origin[planes.body]
+        planes.velocity = twist[planes.body, 0] + np.cross(spin, arms)  # the surface under each point
+        planes.velocity_jacobian = np.cross(spin[:, :, None], planes.jacobians()[0], axis=1)  # [w]x dp/dq
+        local_point = np.einsum("cji,cj->ci", Rb, arms)  # R^T (p - o)
         local_normal = np.einsum("cji,cj->ci", Rb, planes.normal)
         state = self.rigid.flat_state() if self.pushes else None
         record = ClothRigidRecord(state, origin, R, twist, points[planes.index], planes, local_point, local_normal)
@@ -131,21 +136,29 @@ class ClothRigidCoupler:
         return {"force": g_reactions, "point": g_arms}, g_arms, None
 
     def boundary_vjp(self, record: ClothRigidRecord, grad_boundary: dict, carry) -> dict[str, np.ndarray]:
-        """dL/d(planes) {"point", "normal"} (c, 3) and the torque arms' adjoint -> dL/ds of the rigid engine."""
+        """dL/d(planes) {"point", "normal", "velocity"} (c, 3) and the torque arms' adjoint -> dL/ds of the
+        rigid engine."""
         if not self.pushes:
             return {"steps": np.zeros(1)}
         g_point = np.asarray(grad_boundary["point"], dtype=np.float64).reshape(-1, 3)
         g_normal = np.asarray(grad_boundary["normal"], dtype=np.float64).reshape(-1, 3)
-        body = self.bodies[record.planes.body]
+        g_velocity = np.asarray(grad_boundary["velocity"], dtype=np.float64).reshape(-1, 3)
+        body, m = self.bodies[record.planes.body], record.planes.body
         nb = len(self.rigid.body_names)
-        g_pos, g_R = np.zeros((nb, 3)), np.zeros((nb, 3, 3))
+        g_pos, g_R, g_v, g_w = np.zeros((nb, 3)), np.zeros((nb, 3, 3)), np.zeros((nb, 3)), np.zeros((nb, 3))
+        # v_s = v + w x (p - o): the twist, and the arm (the cloth took the arm's query-point part)
+        arms = self._arms(record)
+        np.add.at(g_v, body, g_velocity)
+        np.add.at(g_w, body, np.cross(arms, g_velocity))
+        along_arm = np.cross(g_velocity, record.twist[m, 1])
+        g_point = g_point + along_arm
+        np.add.at(g_pos, body, -along_arm)
         if carry is not None:  # the torque arms p - o: p's part came back through the cloth with the planes'
             np.add.at(g_pos, body, -carry)
         # p = o + R p_l(x_l), n = R n_l(x_l), x_l = R^T (q - o): the plane's feature moves with the query q
-        J_p, J_n = record.planes.jacobians()
+        J_p, J_n, _ = record.planes.jacobians()
         g_query = np.einsum("cki,ck->ci", J_p, g_point) + np.einsum("cki,ck->ci", J_n, g_normal)
         np.add.at(g_pos, body, g_point - g_query)
-        m = record.planes.body
         g_local = np.einsum("cki,ck->ci", record.rotation[m], g_query)  # R^T g_query
         outer = (
             np.einsum("ci,cj->cij", g_point, record.local_point)
@@ -153,6 +166,6 @@ class ClothRigidCoupler:
             + np.einsum("ci,cj->cij", record.query - record.origin[m], g_local)
         )
         np.add.at(g_R, body, outer)
-        flat = self.rigid.body_states_vjp(g_pos, g_R, state=record.state)
+        flat = self.rigid.body_states_vjp(g_pos, g_R, g_v, g_w, state=record.state)
         n = self.rigid.dofs
         return {"q": flat[:n], "qd": flat[n:]}

@@ -19,7 +19,8 @@ Rigid contacts (``cloth_contact``): G holds -sum_i w_ij f_i, f_i the force of co
 reactions' adjoints ("force": dL/d(-f_i); "point": dL/d(where it acts), the plane point passed on) add (df_i/dy_i)^T dL/df_i to gbar at the point's vertices; the plane
 point, normal and the point's start position s_i then get (df_i/dtheta)^T (dL/df_i + sum_j w_ij lam_j),
 the direct path plus the solve's; s_i's goes to dL/dx_n, and so does the planes' own (the planes'
-Jacobians with respect to the queried point s_i). Output "boundaries" {source: {point, normal}}.
+Jacobians with respect to the queried point s_i). Output "boundaries" {source: {point, normal, velocity}}
+(velocity: the body's surface under each point, which friction is relative to).
 H_ff may be indefinite (the unprojected Hessian of a buckled cloth): it is
 factorised by a symmetric-mode LU when it is positive definite, else by LU with partial pivoting; an exactly singular H_ff raises ``SimulationError``. The
 mixin reads the engine's ``frame_dt``, ``gravity``, ``free``, ``free_dofs``, ``pres_dofs``,
@@ -97,12 +98,14 @@ class ClothAdjoint:
             total = self.contact.force_vjp(record.x_next, contacts, g_force + self.contact.gathered(contacts, lam))
             total["point"] = total["point"] + g_at
             # a plane moves with the queried point (the contact point at the step's start) off flat faces
-            g_query = np.einsum("cki,ck->ci", contacts.point_jacobian, total["point"]) + np.einsum(
-                "cki,ck->ci", contacts.normal_jacobian, total["normal"]
+            g_query = (
+                np.einsum("cki,ck->ci", contacts.point_jacobian, total["point"])
+                + np.einsum("cki,ck->ci", contacts.normal_jacobian, total["normal"])
+                + np.einsum("cki,ck->ci", contacts.velocity_jacobian, total["velocity"])
             )
             grad_x = grad_x + self.contact.spread(contacts, total["start"] + g_query, V)
             planes = {
-                src: {"point": total["point"][rows], "normal": total["normal"][rows]}
+                src: {key: total[key][rows] for key in ("point", "normal", "velocity")}
                 for src, rows in contacts.sources.items()
             }
         return {

@@ -18,7 +18,8 @@ constant of the material parameters.
 
 Friction (coefficient mu) is lagged Coulomb friction as a dissipation potential (as in IPC):
 with the normal force lambda_i = k_i gap_i at the step's start and the point's tangential
-slip u_i = T_i (x_i - x_i,n), T_i = I - n_i n_i^T,
+slip relative to the body's surface under it (velocity v_s, from the plane's source),
+u_i = T_i (x_i - x_i,n - h v_s,i), T_i = I - n_i n_i^T,
 
     D(x) = sum_i mu lambda_i f0(|u_i|),  f0(y) = y^2 / eps - y^3 / (3 eps^2) + eps / 3 (y < eps), y (else),
 
@@ -56,18 +57,23 @@ class ContactPlanes:
     normal: np.ndarray  # (c, 3)
     point_jacobian: np.ndarray | None = None  # (c, 3, 3), None: zeros
     normal_jacobian: np.ndarray | None = None
+    velocity: np.ndarray | None = None  # (c, 3) [m/s] the body's surface at the plane point, None: at rest
+    velocity_jacobian: np.ndarray | None = None  # (c, 3, 3) how it moves with the queried point
 
     @staticmethod
     def empty() -> ContactPlanes:
         return ContactPlanes(np.zeros(0, int), np.zeros(0, int), np.zeros((0, 3)), np.zeros((0, 3)))
 
-    def jacobians(self) -> tuple[np.ndarray, np.ndarray]:
-        """(point_jacobian, normal_jacobian), zeros where not given."""
-        zero = np.zeros((len(self.index), 3, 3))
-        return (
-            zero if self.point_jacobian is None else np.asarray(self.point_jacobian, dtype=np.float64),
-            zero if self.normal_jacobian is None else np.asarray(self.normal_jacobian, dtype=np.float64),
+    def jacobians(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(point_jacobian, normal_jacobian, velocity_jacobian), zeros where not given."""
+        return tuple(
+            np.zeros((len(self.index), 3, 3)) if a is None else np.asarray(a, dtype=np.float64)
+            for a in (self.point_jacobian, self.normal_jacobian, self.velocity_jacobian)
         )
+
+    def velocities(self) -> np.ndarray:
+        """(c, 3) [m/s] the surface velocities, zeros where not given."""
+        return np.zeros((len(self.index), 3)) if self.velocity is None else np.asarray(self.velocity, dtype=np.float64)
 
 
 @dataclass
@@ -85,6 +91,8 @@ class ContactSet:
     sources: dict[str, slice]  # the rows of each source's planes
     point_jacobian: np.ndarray  # (c, 3, 3) d(plane point)/d(start)
     normal_jacobian: np.ndarray  # (c, 3, 3) d(normal)/d(start)
+    velocity_jacobian: np.ndarray  # (c, 3, 3) d(surface velocity)/d(start)
+    surface_velocity: np.ndarray  # (c, 3) [m/s] the body's surface under each point (friction is relative to it)
 
 
 class RigidContact:
@@ -104,6 +112,7 @@ class RigidContact:
         self.thickness = float(thickness)
         self.friction = float(friction)
         self.eps = slip_speed * frame_dt  # [m] slip below which friction acts as a spring
+        self.frame_dt = float(frame_dt)
         V = len(masses)
         # each vertex as a point of one face containing it: (face, slot of the vertex in it)
         owner = np.full(V, -1)
@@ -138,7 +147,7 @@ class RigidContact:
             parts = [np.asarray(getattr(p, key), dtype=dtype).reshape(-1, *shape) for p in planes.values()]
             return np.concatenate(parts) if parts else np.zeros((0, *shape), dtype=dtype)
 
-        jacobians = [p.jacobians() for p in planes.values()] or [(np.zeros((0, 3, 3)),) * 2]
+        jacobians = [p.jacobians() for p in planes.values()] or [(np.zeros((0, 3, 3)),) * 3]
         c = ContactSet(
             face,
             weight.reshape(-1, 3),
@@ -149,7 +158,8 @@ class RigidContact:
             np.zeros((len(idx), 3)),
             np.zeros(len(idx)),
             sources,
-            *(np.concatenate(parts) if parts else np.zeros((0, 3, 3)) for parts in zip(*jacobians)),
+            *(np.concatenate(parts) for parts in zip(*jacobians)),
+            np.concatenate([p.velocities() for p in planes.values()] or [np.zeros((0, 3))]),
         )
         c.start = self.contact_points(x_n, c)
         c.normal_force = c.stiffness * self.gaps(x_n, c)
@@ -175,9 +185,13 @@ class RigidContact:
         pts = self.contact_points(x, c)
         return np.maximum(0.0, self.thickness - np.einsum("ck,ck->c", c.normal, pts - c.point))
 
+    def _moved(self, x: np.ndarray, c: ContactSet) -> np.ndarray:
+        """(c, 3) [m] each point's motion over the step relative to the body's surface under it."""
+        return self.contact_points(x, c) - c.start - self.frame_dt * c.surface_velocity
+
     def _slip(self, x: np.ndarray, c: ContactSet) -> tuple[np.ndarray, np.ndarray]:
-        """Tangential slips u (c, 3) [m] since the step's start and their lengths y (c,)."""
-        d = self.contact_points(x, c) - c.start
+        """Tangential slips u (c, 3) [m] over the step, relative to the body, and their lengths y (c,)."""
+        d = self._moved(x, c)
         u = d - np.einsum("ck,ck->c", d, c.normal)[:, None] * c.normal
         return u, np.linalg.norm(u, axis=1)
 
@@ -242,9 +256,9 @@ class RigidContact:
 
     def force_vjp(self, x: np.ndarray, c: ContactSet, g: np.ndarray) -> dict[str, np.ndarray]:
         """The adjoint of the points' forces f (c, 3) at positions x: dL/df = ``g`` (c, 3) ->
-        dL/d(position y, start s, plane point p, plane normal n), each (c, 3).
+        dL/d(position y, start s, plane point p, plane normal n, surface velocity v_s), each (c, 3).
 
-        f = k gap n [gap > 0] - mu lambda phi(u), gap = r - n . (y - p), u = T (y - s),
+        f = k gap n [gap > 0] - mu lambda phi(u), gap = r - n . (y - p), u = T (y - s - h v_s),
         lambda = k max(0, r - n . (s - p)) (the lagged normal force)."""
         gap, stiffness = self.gaps(x, c), c.stiffness
         y_p = self.contact_points(x, c) - c.point
@@ -252,19 +266,20 @@ class RigidContact:
         g_y = -g_gap[:, None] * c.normal
         g_p = g_gap[:, None] * c.normal
         g_n = (stiffness * gap)[:, None] * g - g_gap[:, None] * y_p
-        g_s = np.zeros_like(g)
+        g_s, g_v = np.zeros_like(g), np.zeros_like(g)
         if self.friction:
             _, _, phi, M = self._friction_terms(x, c)
             g_u = np.einsum("cik,ck->ci", M, -(self.friction * c.normal_force)[:, None] * g)
             n_dot = np.einsum("ck,ck->c", c.normal, g_u)
-            d = self.contact_points(x, c) - c.start
+            d = self._moved(x, c)
             g_d = g_u - n_dot[:, None] * c.normal  # u = d - n (n . d)
             g_n -= np.einsum("ck,ck->c", c.normal, d)[:, None] * g_u + n_dot[:, None] * d
             g_y += g_d
             g_s -= g_d
+            g_v -= self.frame_dt * g_d
             s_p = c.start - c.point
             g_gap0 = stiffness * (c.normal_force > 0) * (-self.friction * np.einsum("ck,ck->c", phi, g))
             g_s -= g_gap0[:, None] * c.normal
             g_p += g_gap0[:, None] * c.normal
             g_n -= g_gap0[:, None] * s_p
-        return {"y": g_y, "start": g_s, "point": g_p, "normal": g_n}
+        return {"y": g_y, "start": g_s, "point": g_p, "normal": g_n, "velocity": g_v}
