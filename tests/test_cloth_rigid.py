@@ -62,7 +62,8 @@ def _towel(size=0.3, n=11, height=0.2, damping=0.0, bend=1e-3):
     from cosim.engines.cloth_mesh import rectangle
 
     mesh = rectangle((size, size), (n, n), (0.0, height, 0.0), "y")
-    return ClothEngine(mesh, ClothMaterial(k_stretch=500.0, k_bend=bend, c_mass=damping), frame_dt=2e-3)
+    material = ClothMaterial(k_stretch=500.0, k_bend=bend, c_mass=damping)
+    return ClothEngine(mesh, material, frame_dt=2e-3)
 
 
 def _planes(towel, obstacles, pose, thickness: float) -> dict:
@@ -209,7 +210,7 @@ def test_cloth_adjoint_with_a_moving_tilted_box_matches_central_differences(
             - np.sum(g_query * np.cross(spin, c.start - o))
         )
     eps = 1e-6
-    dx, dv = rng.normal(size=start["x"].shape) * 1e-3, rng.normal(size=start["v"].shape)
+    dx, dv = rng.normal(size=start["x"].shape) * 1e-1, rng.normal(size=start["v"].shape)
     checks = [
         (np.sum(grad["x"] * dx) + np.sum(grad["v"] * dv), lambda e: loss(start["x"] + e * dx, start["v"] + e * dv)[0]),
         (g_height, lambda e: loss(start["x"], start["v"], height=e)[0]),
@@ -343,3 +344,23 @@ def test_a_kinematic_tray_carries_a_towel_through_the_scene_coupler():
     assert abs(float(towel["v"][:, 0].mean()) - 0.2) < 0.01
     assert np.all(np.abs(towel["x"][:, 1] - 0.4564) < 0.005)  # still on the tray, at its contact layer
     assert sim.conservation.work > 0.5 * 0.5 * sim.engines["towel"].masses().sum() * 0.2**2
+
+
+@pytest.mark.parametrize(
+    "friction, velocity", [(0.5, [0.05, -0.3, 0.0]), (0.2, [0.05, -0.3, 0.0]), (0.5, [0.3, -0.5, 0.0])]
+)
+def test_newton_converges_when_a_towel_slides_onto_a_tilted_floor_with_friction(friction, velocity):
+    """A towel sliding onto a slightly tilted floor with friction: every point sticks or slips within a
+    slip of eps = 2 um, where the friction potential switches from quadratic to linear. With the exact
+    Hessian alone Newton flew past the sticking points and back (line-search steps of 1/512) and did not
+    converge within 200 iterations in 16 of 18 such starts; with the friction's majorizing curvature in
+    its fallback direction (``point_hessians(majorize=True)``) every step converges within 40."""
+    floor = SimpleNamespace(type="box", size=[1.0, 0.1, 1.0])
+    obstacles = RigidObstacles([floor], ".", ["floor"])
+    towel = _towel(n=6, height=0.004)
+    towel.attach_rigid_contact(0.005, friction=friction)
+    state = towel.state()
+    towel.set_state({"x": state["x"], "v": state["v"] + velocity})
+    pose = (np.array([0.0, -0.05, 0.0]), so3.exp(np.array([0.0, 0.0, 0.01])))
+    iterations = [towel.step(_planes(towel, obstacles, pose, 0.005))[1].iterations for _ in range(3)]
+    assert max(iterations) <= 40, iterations

@@ -36,7 +36,7 @@ inertia term only, (m + A)(v_{n+1} - v_n) / h, not gravity or damping (``cosim.c
 
 Newton: the search direction uses the exact Hessian when its free block is positive definite (read
 off the pivots of a symmetric-mode LU), else the per-element Hessians projected to PSD (batched
-eigh). Projection alone always descends but converges only linearly where the exact Hessian differs
+eigh), rigid-contact friction by its majorizing curvature (``cloth_contact.point_hessians``). Projection alone always descends but converges only linearly where the exact Hessian differs
 (compressed ARAP faces, bent hinges): measured, it stalled at 1e-8 N on a crumpled sheet, while the
 exact Hessian, positive definite there thanks to M / h^2, converges quadratically. Backtracking line
 search on E (round-off aware), sparse LU (SuperLU, MMD ordering on A^T + A, symmetric mode, the CSC
@@ -358,7 +358,7 @@ class ClothEngine(ClothAdjoint, ClothSolver):
             H_mem, H_bend = project_psd(H_mem), project_psd(H_bend)
         face = mat.k_stretch * H_mem
         if contacts is not None:
-            face = face + self.contact.face_hessians(x, contacts, len(self.mesh.faces))
+            face = face + self.contact.face_hessians(x, contacts, len(self.mesh.faces), majorize=project)
         return np.concatenate([face.ravel(), mat.k_bend * H_bend.ravel()])
 
     def _mass_diagonal(self, mat: ClothMaterial, added: np.ndarray | None = None) -> np.ndarray:

@@ -236,18 +236,27 @@ class RigidContact:
         )
         return u, T, df_over_y[:, None] * u, M
 
-    def point_hessians(self, x: np.ndarray, c: ContactSet) -> np.ndarray:
-        """(c, 3, 3) minus the derivative of each point's force with respect to its position."""
+    def point_hessians(self, x: np.ndarray, c: ContactSet, majorize: bool = False) -> np.ndarray:
+        """(c, 3, 3) minus the derivative of each point's force with respect to its position; with
+        ``majorize`` the friction's part is mu lambda f0'(y)/y T instead (the curvature of the quadratic
+        that bounds f0 from above at the current slip, in every tangent direction): a Newton step with it
+        cannot overshoot a sticking point past its stick (the exact Hessian has no curvature along a
+        slip longer than eps, and its steps fly past and back)."""
         active = (self.gaps(x, c) > 0).astype(np.float64)
         K = np.einsum("c,ci,ck->cik", c.stiffness * active, c.normal, c.normal)
         if self.friction:
-            _, T, _, M = self._friction_terms(x, c)
+            u, T, phi, M = self._friction_terms(x, c)
+            if majorize:
+                y = np.linalg.norm(u, axis=1)
+                df_over_y = np.linalg.norm(phi, axis=1) / np.maximum(y, 1e-300)
+                df_over_y = np.where(y > 0, df_over_y, 2.0 / self.eps)
+                M = df_over_y[:, None, None] * np.eye(3)[None]
             K += (self.friction * c.normal_force)[:, None, None] * (M @ T)
         return K
 
-    def face_hessians(self, x: np.ndarray, c: ContactSet, n_faces: int) -> np.ndarray:
+    def face_hessians(self, x: np.ndarray, c: ContactSet, n_faces: int, majorize: bool = False) -> np.ndarray:
         """(F, 9, 9) the Hessian of E_c as blocks on each face's dofs: w_j w_l K_i for each point."""
-        K = self.point_hessians(x, c)
+        K = self.point_hessians(x, c, majorize)
         ww = np.einsum("cj,cl->cjl", c.weight, c.weight)  # (c, 3, 3)
         blocks = np.einsum("cjl,cik->cjilk", ww, K).reshape(-1, 9, 9)
         out = np.zeros((n_faces, 9, 9))
