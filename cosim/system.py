@@ -277,10 +277,13 @@ class CoupledSystem:
     def vjp(self, record: StepRecord, grad: dict[str, dict[str, np.ndarray]]) -> dict:
         """Vector-Jacobian product of one recorded macro step (the paper's backward equations).
 
-        ``grad``: dL/d(state after) per engine name. Each manipulator's vjp gives dL/ds_e (own
-        dynamics), dL/da_e and dL/dF_e; each coupler's ``forces_vjp`` turns dL/dF into reaction
-        adjoints; one MPM vjp, given them all, returns dL/ds_M (direct and force paths) and the
-        boundary adjoints; each coupler's ``boundary_vjp`` adds the boundary path to dL/ds_e.
+        ``grad``: dL/d(state after) per engine name. The manipulators in reverse order: each vjp gives
+        dL/ds_e (own dynamics), dL/da_e and dL/dF_e, and, for an engine that is a coupler's medium (a
+        cloth meeting rigid bodies), takes that coupler's reaction adjoints (its ``forces_vjp`` of the
+        later engine's dL/dF) and returns the boundary adjoints, which its ``boundary_vjp`` adds to the
+        later engine's dL/ds. Then each MPM coupler's ``forces_vjp`` turns dL/dF into reaction adjoints;
+        one MPM vjp, given them all, returns dL/ds_M (direct and force paths) and the boundary
+        adjoints; each MPM coupler's ``boundary_vjp`` adds the boundary path to dL/ds_e.
         Returns {"state": per engine, "action": per engine, "impulse", "material": per engine
         {parameter key: this step's share}} (an engine's vjp reports its own under "material").
         """
