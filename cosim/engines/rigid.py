@@ -337,11 +337,13 @@ class RigidEngine(RigidAdjoint):
         return 0.0
 
     def points(self) -> np.ndarray:
-        """(bodies, 3) [m] the body origins, which must stay in the MPM's domain if they start in it."""
-        return self.body_states()["position"]
+        """(n, 3) [m] the origins of the bodies no action drives, which must stay in the MPM's domain if they
+        start in it (one that leaves was flung by what it touches; a driven body goes where its actions
+        take it, an optimiser's trial included)."""
+        return self.body_states()["position"][self.passive_bodies()]
 
     def point_name(self, i: int) -> str:
-        return f"body '{self.body_names[i]}'"
+        return f"body '{np.asarray(self.body_names)[self.passive_bodies()][i]}'"
 
     def body_states(self) -> dict[str, np.ndarray]:
         """Per body (``body_names`` order), world frame: ``position`` of the body origin (nb, 3), ``rotation``
