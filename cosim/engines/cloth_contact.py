@@ -221,19 +221,19 @@ class RigidContact:
         """(V, 3) [N] grad E_c: minus each point's force spread with its weights."""
         return -self.spread(c, self.forces(x, c), len(x))
 
-    def _friction_terms(self, x: np.ndarray, c: ContactSet):
-        """Slip u (c, 3), its length y, the unit slip t, T = I - n n^T, the friction direction
-        phi = f0'(y) u / y (friction force -mu lambda phi) and M = dphi/du (c, 3, 3)."""
+    def _friction_terms(self, x: np.ndarray, c: ContactSet, majorize: bool = False):
+        """Slip u (c, 3), T = I - n n^T, the friction direction phi = f0'(y) u / y (friction force
+        -mu lambda phi, y = |u|) and M = dphi/du (c, 3, 3); with ``majorize`` M = f0'(y)/y I, the
+        curvature of the quadratic that bounds f0 from above at the current slip (``point_hessians``)."""
         u, y = self._slip(x, c)
         _, df, d2f = self._f0(y)
         safe = np.maximum(y, 1e-300)
         df_over_y = np.where(y < self.eps, 2 / self.eps - y / self.eps**2, df / safe)
-        t = u / safe[:, None]
         T = np.eye(3)[None] - np.einsum("ci,ck->cik", c.normal, c.normal)
-        # d/du (df/y u) = df/y I + (d2f - df/y) t t^T; at y -> 0 both terms tend to (2/eps) I
-        M = df_over_y[:, None, None] * np.eye(3)[None] + (d2f - df_over_y)[:, None, None] * np.einsum(
-            "ci,ck->cik", t, t
-        )
+        M = df_over_y[:, None, None] * np.eye(3)[None]
+        if not majorize:  # d/du (df/y u) = df/y I + (d2f - df/y) t t^T; at y -> 0 both terms tend to (2/eps) I
+            t = u / safe[:, None]
+            M = M + (d2f - df_over_y)[:, None, None] * np.einsum("ci,ck->cik", t, t)
         return u, T, df_over_y[:, None] * u, M
 
     def point_hessians(self, x: np.ndarray, c: ContactSet, majorize: bool = False) -> np.ndarray:
@@ -245,12 +245,7 @@ class RigidContact:
         active = (self.gaps(x, c) > 0).astype(np.float64)
         K = np.einsum("c,ci,ck->cik", c.stiffness * active, c.normal, c.normal)
         if self.friction:
-            u, T, phi, M = self._friction_terms(x, c)
-            if majorize:
-                y = np.linalg.norm(u, axis=1)
-                df_over_y = np.linalg.norm(phi, axis=1) / np.maximum(y, 1e-300)
-                df_over_y = np.where(y > 0, df_over_y, 2.0 / self.eps)
-                M = df_over_y[:, None, None] * np.eye(3)[None]
+            _, T, _, M = self._friction_terms(x, c, majorize)
             K += (self.friction * c.normal_force)[:, None, None] * (M @ T)
         return K
 
