@@ -3,8 +3,9 @@
 Per macro step: the substep count from the CFL bound (or a fixed count, checked against the
 material's stability bound) and the retry with twice the substeps while a step breaks the bound;
 NaN/inf in the material at the substep it appeared; particles leaving the grid; the energy budget of
-the whole coupled system (``cosim.conservation``); rigid-body origins and cloth vertices leaving the grid (engines that
-declare ``points``); particles through a rigid body (``cosim.couplers.tunnelling``). Each stops the
+the whole coupled system (``cosim.conservation``); undriven rigid-body origins and cloth vertices
+leaving the grid (engines that declare ``points``); particles through a rigid body
+(``cosim.couplers.tunnelling``). Each stops the
 run with a ``SimulationError`` naming the step, the body and the quantity, and a fix.
 """
 
