@@ -119,10 +119,10 @@ class ClothRigidCoupler:
             if declares(self.rigid, "energy")
             else np.ones(len(self.bodies), bool)
         )
-        m = record.planes.body
-        v, w = record.twist[m, 0], record.twist[m, 1]
-        at_plane = v + np.cross(w, self._arms(record))
-        return -frame_dt * float(np.sum(outside[m] * np.einsum("ck,ck->c", record.reactions, at_plane)))
+        at_plane = record.planes.velocities()  # the surface velocity under each point (``boundary``)
+        return -frame_dt * float(
+            np.sum(outside[record.planes.body] * np.einsum("ck,ck->c", record.reactions, at_plane))
+        )
 
     def forces_vjp(self, record: ClothRigidRecord, grad_load: dict, grad_state: None = None) -> tuple:
         """dL/d(wrenches) -> (dL/d(reactions) {"force", "point"} (c, 3) each, dL/d(torque arms) carried to

@@ -103,6 +103,9 @@ class RigidEngine(RigidAdjoint):
         self._bodies = [(k, b) for k, s in enumerate(self.skeletons) for b in s.getBodyNodes()]
         self.body_names = [f"{self.specs[k].name}/{b.getName()}" for k, b in self._bodies]
         self.controls = self._parse_controls()
+        driven = {c.skel for c in self.controls}
+        self._passive_skeletons = [k for k in range(len(self.skeletons)) if k not in driven]  # energy budget
+        self._passive = np.array([k not in driven for k, _body in self._bodies], dtype=bool)
         self.action_size = sum(c.slice.stop - c.slice.start for c in self.controls)
         self._kinematic = self._kinematic_masks()
         self._rotation_blocks = self._find_rotation_blocks()
@@ -316,21 +319,16 @@ class RigidEngine(RigidAdjoint):
     # ------------------------------------------------------------------------------------ body states
 
     # ------------------------------------------------------------------------------ energy budget
-    def _driven(self) -> set[int]:
-        return {c.skel for c in self.controls}
-
     def energy_and_mass(self) -> tuple[float, float]:
         """(kinetic + potential energy [J] (gravity, joint springs: DART's), mass [kg]) of the skeletons no
         action drives; a driven skeleton's energy is the actions' business, its contacts' work external."""
-        driven = self._driven()
-        passive = [s for k, s in enumerate(self.skeletons) if k not in driven]
+        passive = [self.skeletons[k] for k in self._passive_skeletons]
         energy = sum(s.computeKineticEnergy() + s.computePotentialEnergy() for s in passive)
         return float(energy), float(sum(s.getMass() for s in passive))
 
     def passive_bodies(self) -> np.ndarray:
         """(len(body_names),) bool: bodies of skeletons no action drives (in the energy budget)."""
-        driven = self._driven()
-        return np.array([k not in driven for k, _body in self._bodies], dtype=bool)
+        return self._passive.copy()
 
     def external_work(self, record) -> float:
         """[J] Work done on the budgeted skeletons by their own actions in the recorded step: none."""
@@ -340,10 +338,10 @@ class RigidEngine(RigidAdjoint):
         """(n, 3) [m] the origins of the bodies no action drives, which must stay in the MPM's domain if they
         start in it (one that leaves was flung by what it touches; a driven body goes where its actions
         take it, an optimiser's trial included)."""
-        return self.body_states()["position"][self.passive_bodies()]
+        return self.body_states()["position"][self._passive]
 
     def point_name(self, i: int) -> str:
-        return f"body '{np.asarray(self.body_names)[self.passive_bodies()][i]}'"
+        return f"body '{np.asarray(self.body_names)[self._passive][i]}'"
 
     def body_states(self) -> dict[str, np.ndarray]:
         """Per body (``body_names`` order), world frame: ``position`` of the body origin (nb, 3), ``rotation``

@@ -211,23 +211,20 @@ def cloth_rigid_couplers(scene: Scene, spec, cloth, rigid) -> list:
     thickness = spec.thickness or 0.5 * scene.dx
     cloth.attach_rigid_contact(thickness, scene.contact.friction)
     n_kinematic = len(rigid.kinematic.motions) if rigid.kinematic is not None else 0
-    groups = [(rigid.kinematic, [i for i in bodies if i < n_kinematic], lambda i: i)]
+    # (engine, the view's bodies it moves, their indices in that engine)
+    kinematic = [i for i in bodies if i < n_kinematic]
+    groups = [(rigid.kinematic, kinematic, kinematic)]
     if rigid.coupler is not None:
-        groups.append(
-            (
-                rigid.coupler.rigid,
-                [i for i in bodies if i >= n_kinematic],
-                lambda i: rigid.coupler.coupled[i - n_kinematic],
-            )
-        )
+        dart = [i for i in bodies if i >= n_kinematic]
+        groups.append((rigid.coupler.rigid, dart, [rigid.coupler.coupled[i - n_kinematic] for i in dart]))
     out = []
-    for engine, members, index in groups:
+    for engine, members, indices in groups:
         if members:
             obstacles = RigidObstacles(
                 [rigid.shapes[i] for i in members], scene.source_dir, [rigid.names[i] for i in members]
             )
             name = f"{cloth.name}-{engine.name}"
-            out.append(ClothRigidCoupler(cloth, engine, [index(i) for i in members], obstacles, thickness, name))
+            out.append(ClothRigidCoupler(cloth, engine, indices, obstacles, thickness, name))
     return out
 
 
