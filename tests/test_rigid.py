@@ -231,7 +231,7 @@ def test_step_vjp_matches_finite_differences(name):
     w = rng.normal(size=(len(eng.body_names), 6))
     record = eng.advance(a, w)
     g = rng.normal(size=2 * eng.dofs)
-    grad_s, grad_a, grad_w = eng.vjp_flat(record, g)
+    grad_s, grad_a, grad_w, _ = eng.vjp_flat(record, g)
     assert np.array_equal(eng.flat_state(), record.next_state)  # vjp leaves the engine where it was
 
     def loss(s, a_, w_):
@@ -430,7 +430,7 @@ def test_velocity_control_stays_inside_the_joint_limits_with_an_exact_gradient()
     grad = np.zeros_like(actions)
     adj = g
     for i in reversed(range(len(records))):
-        adj, grad[i], _ = eng.vjp_flat(records[i], adj)
+        adj, grad[i], _, _ = eng.vjp_flat(records[i], adj)
     fd = central(final, actions, h=1e-6)
     assert rel_err(grad, fd) < 1e-6
     assert np.all(grad[20:60] == 0)  # commands clipped at the limit do not matter

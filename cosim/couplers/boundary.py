@@ -28,6 +28,7 @@ source (``RigidBoundaries``), the cloth's traced distance (``ClothBoundary``) is
 import numpy as np
 import taichi as ti
 
+from cosim.couplers.contact_rules import source_offset, surface_offset
 from cosim.couplers.sdf_field import SDFField
 from cosim.couplers.sdf_grid import SDFGrid
 from cosim.engines import field_pool
@@ -44,9 +45,18 @@ class RigidBoundaries:
     component in 2D). The reaction on body b: ``impulse[s, b]`` [N s] = minus the
     momentum the contact gave the material, ``angular_impulse[s, b]`` [N m s] its
     moment about ``pos[s, b]``.
+
+    With ``added_mass`` (the MPM-DART coupler's strong coupling, ``cosim.couplers.mpm_rigid``) its
+    reactions also carry "mass" (n, k, k) [kg, kg m, kg m^2], k = 3 in 2D, 6 in 3D: per body, the
+    material that follows the body's twist [omega; v] (about ``pos``) over the frame, as a
+    rigid-body inertia: sum_p m_p e_p J_p^T J_p, J_p = [-[r_p]x, I] the map from the twist to the
+    velocity of the body point under particle p (r_p = x_p - pos), e_p the contact model's share
+    of p that follows it (``engagement``), at the frame's end.
     """
 
-    def __init__(self, sdfs: list[SDFGrid], dim: int, max_substeps: int, requires_grad: bool = False):
+    def __init__(
+        self, sdfs: list[SDFGrid], dim: int, max_substeps: int, requires_grad: bool = False, added_mass: bool = False
+    ):
         self.dim = dim
         self.n = len(sdfs)
         self.wdim = 1 if dim == 2 else 3
@@ -60,6 +70,11 @@ class RigidBoundaries:
         self.impulse = field_pool.vector(self, dim, float, shape=shape, needs_grad=grad)
         self.angular_impulse = field_pool.vector(self, self.wdim, float, shape=shape, needs_grad=grad)
         self.real = np.float64 if self.pos.dtype == ti.f64 else np.float32
+        self.capabilities = frozenset({"added_mass"}) if added_mass else frozenset()
+        self.engagement = None  # the contact model that says how much material follows a body (forecast)
+        k = self.wdim + dim
+        self.contact_mass = field_pool.matrix(self, k, k, float, shape=(max(self.n, 1),), needs_grad=grad)
+        self._substeps = 1
 
     # ------------------------------------------------------------------ what a contact model asks
     @ti.func
@@ -106,7 +121,8 @@ class RigidBoundaries:
         """Body states of substeps 0..K-1 (BoundaryStates, ``cosim.engines.contract``); clears their reactions.
         Only the K slots are written (the fields hold max_substeps)."""
         arrays = [np.ascontiguousarray(states[k], dtype=self.real) for k in BOUNDARY_KEYS]
-        self._write_states(*arrays, len(arrays[0]))
+        self._substeps = len(arrays[0])
+        self._write_states(*arrays, self._substeps)
 
     @ti.kernel
     def _write_states(
@@ -149,23 +165,66 @@ class RigidBoundaries:
         )
 
     def reactions(self, K: int) -> dict[str, np.ndarray]:
-        """Reactions of substeps 0..K-1: impulse (K, n, d) [N s], angular_impulse (K, n, 1|3) about pos."""
+        """Reactions of substeps 0..K-1: impulse (K, n, d) [N s], angular_impulse (K, n, 1|3) about pos;
+        with an engagement, "mass" (n, k, k) (the class docstring)."""
         impulse = np.zeros((K, self.n, self.dim), dtype=self.real)
         angular = np.zeros((K, self.n, self.wdim), dtype=self.real)
         self._read_reactions(impulse, angular, K)
-        return {"impulse": impulse.astype(np.float64), "angular_impulse": angular.astype(np.float64)}
+        out = {"impulse": impulse.astype(np.float64), "angular_impulse": angular.astype(np.float64)}
+        if self.engagement is not None:
+            self.contact_mass.fill(0)
+            self._contact_mass(self.engagement.engine._slot, K - 1, K)
+            out["mass"] = self.contact_mass.to_numpy()[: self.n].astype(np.float64)
+        return out
+
+    @ti.kernel
+    def _contact_mass(self, src: ti.i32, s: ti.i32, K: ti.i32):
+        """sum_p m_p e_p J_p^T J_p per body (the class docstring), particles in slot ``src`` against the
+        bodies at substep s; a smooth function of both (its adjoint runs in the MPM's vjp)."""
+        e = self.engagement.engine
+        ti.loop_config(serialize=e.serial_particle_loops)
+        for p in range(e.count[None]):
+            x = e.x[src, p]
+            offset = surface_offset(e, ti.static(source_offset(self, self.engagement.offset)), p)
+            for b in ti.static(range(self.n)):
+                share = self.engagement.engagement(self.distance(s, b, x, p) - offset, K)
+                if share > 0:
+                    J = self.twist_map(x - self.pos[s, b])
+                    self.contact_mass[b] += (e.mass_of(p) * share) * (J.transpose() @ J)
+
+    @ti.func
+    def twist_map(self, r):
+        """J (d x k): the velocity of the body point at offset r [m] from the origin is J [omega; v]."""
+        J = ti.Matrix.zero(float, self.dim, self.wdim + self.dim)
+        if ti.static(self.dim == 2):
+            J[0, 0], J[1, 0] = -r[1], r[0]
+        else:
+            J[0, 1], J[0, 2] = r[2], -r[1]  # -[r]x
+            J[1, 0], J[1, 2] = -r[2], r[0]
+            J[2, 0], J[2, 1] = r[1], -r[0]
+        for i in ti.static(range(self.dim)):
+            J[i, self.wdim + i] = 1.0
+        return J
 
     def zero_grad(self) -> None:
-        for fld in (self.pos, self.rot, self.vel, self.omega, self.impulse, self.angular_impulse):
+        for fld in (self.pos, self.rot, self.vel, self.omega, self.impulse, self.angular_impulse, self.contact_mass):
             fld.grad.fill(0)
 
     def seed_reaction_grads(self, grads: dict[str, np.ndarray]) -> None:
-        """dL/d(reactions) of substeps 0..K-1 (Reactions layout), after ``zero_grad``."""
+        """dL/d(reactions) of substeps 0..K-1 (Reactions layout, and "mass" with an engagement), after
+        ``zero_grad`` and after the state's adjoint is seeded (the mass reads the particles at the end)."""
         for key in REACTION_KEYS:
             fld, values = getattr(self, key), grads[key]
             full = np.zeros(fld.shape + (values.shape[-1],), dtype=self.real)
             full[: len(values)] = values
             fld.grad.from_numpy(full)
+        g_mass = grads.get("mass")
+        if g_mass is not None and self.engagement is not None and np.any(g_mass):
+            full = np.zeros(self.contact_mass.shape + g_mass.shape[1:], dtype=self.real)
+            full[: self.n] = g_mass
+            self.contact_mass.grad.from_numpy(full)
+            K = self._substeps
+            self._contact_mass.grad(self.engagement.engine._slot, K - 1, K)
 
     def state_grads(self, K: int) -> dict[str, np.ndarray]:
         """dL/d(body states) of substeps 0..K-1 (BoundaryStates layout) after a vjp."""

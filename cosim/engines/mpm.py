@@ -266,12 +266,12 @@ class MPMEngine(MPMAdjointKernels):
                 self._substep(s, s + 1, dt, share, s)
             self._slot = K
         self._zero_grad()
+        for k in STATE_KEYS:  # before the reactions': a source's added mass adds to the end state's adjoint
+            self._put(getattr(self, k).grad, K, grad_outputs["state"][k])
         reaction_grads = grad_outputs.get("reactions") or {}
         for name, source in self.boundaries.items():
             if name in reaction_grads:
                 source.seed_reaction_grads(reaction_grads[name])
-        for k in STATE_KEYS:
-            self._put(getattr(self, k).grad, K, grad_outputs["state"][k])
         for s in reversed(range(K)):
             self._substep_grad(s, dt, share)
         self._resident = -1

@@ -27,6 +27,7 @@ from dataclasses import dataclass
 import dartpy as dart
 import numpy as np
 
+from cosim.engines import rigid_added_mass
 from cosim.engines.rigid_adjoint import RigidAdjoint, StepRecord
 from cosim.engines.rigid_build import (
     CONTROL_MODES,
@@ -200,19 +201,24 @@ class RigidEngine(RigidAdjoint):
         self.set_flat_state(np.concatenate([state["q"], state["qd"]]))
 
     def step(self, inputs: dict) -> tuple[dict, StepRecord]:
-        """One step of dt under ``inputs`` action (action_size,) (None: zeros) and forces: per-body
+        """One step of dt under ``inputs`` action (action_size,) (None: zeros), forces: per-body
         wrenches (len(body_names), 6) [torque; force] in the world frame, torque about the body
-        origin (None: zeros). Returns ({state}, record)."""
-        record = self.advance(inputs.get("action"), inputs.get("forces"))
+        origin (None: zeros) and added_mass (len(body_names), 6, 6) (None: none; ``rigid_added_mass``).
+        Returns ({state}, record)."""
+        record = self.advance(inputs.get("action"), inputs.get("forces"), inputs.get("added_mass"))
         n = self.dofs
         return {"state": {"q": record.next_state[:n], "qd": record.next_state[n:]}}, record
 
     def vjp(self, record: StepRecord, grad_outputs: dict) -> dict:
-        """{"state": dL/d(state after)} -> dL/d(state before), dL/d(action), dL/d(forces) (see ``vjp_flat``)."""
+        """{"state": dL/d(state after)} -> dL/d(state before), dL/d(action), dL/d(forces) and, where the step
+        had one, dL/d(added_mass) (see ``vjp_flat``)."""
         g = grad_outputs["state"]
-        grad_state, grad_action, grad_forces = self.vjp_flat(record, np.concatenate([g["q"], g["qd"]]))
+        grads = self.vjp_flat(record, np.concatenate([g["q"], g["qd"]]))
         n = self.dofs
-        return {"state": {"q": grad_state[:n], "qd": grad_state[n:]}, "action": grad_action, "forces": grad_forces}
+        out = {"state": {"q": grads[0][:n], "qd": grads[0][n:]}, "action": grads[1], "forces": grads[2]}
+        if record.added is not None:
+            out["added_mass"] = grads[3]
+        return out
 
     def parameters(self) -> list:
         """The action sequence, when any joint is controlled."""
@@ -222,16 +228,30 @@ class RigidEngine(RigidAdjoint):
 
     # -------------------------------------------------------------------------------------------- step
 
-    def advance(self, action: np.ndarray | None = None, wrenches: np.ndarray | None = None) -> StepRecord:
-        """Advance one dt under the action and per-body world wrenches; NaN -> SimulationError."""
+    def advance(self, action: np.ndarray | None = None, wrenches: np.ndarray | None = None, added=None) -> StepRecord:
+        """Advance one dt under the action, per-body world wrenches and added masses; NaN -> SimulationError."""
         action, wrenches = self._check_inputs(action, wrenches)
+        added = rigid_added_mass.check_added_mass(added, len(self._bodies))
         before = self.flat_state()
         clamped = self._apply(action, wrenches)
         self.world.step()
+        if added is not None:
+            self._step_with_added_mass(before, action, wrenches, added)
         self.steps += 1
         after = self.flat_state()
         self._check_finite(after)
-        return StepRecord(before, action, wrenches, after, self.steps, clamped, self._active_constraint())
+        constraint = self._active_constraint()
+        return StepRecord(before, action, wrenches, after, self.steps, clamped, constraint, added)
+
+    def _step_with_added_mass(self, before: np.ndarray, action, wrenches, added: np.ndarray) -> None:
+        """Redo the step just taken from ``before`` so that the bodies' added masses join their inertia
+        (``cosim.engines.rigid_added_mass``: the second of its two DART steps)."""
+        n = self.dofs
+        change = self.flat_state()[n:] - before[n:]
+        self.set_flat_state(before)
+        change = rigid_added_mass.corrected_change(self, added, change)
+        self._apply(action, wrenches + rigid_added_mass.extra_wrenches(self, added, change))
+        self.world.step()
 
     def _active_constraint(self) -> tuple[str, float] | None:
         """("skeleton/dof", force) of the largest generalised constraint force of the last step (a joint
@@ -300,11 +320,13 @@ class RigidEngine(RigidAdjoint):
                 body.addExtForce(w[3:], _ORIGIN, False, True)
         return clamped
 
-    def _advance(self, state: np.ndarray, action: np.ndarray, wrenches: np.ndarray) -> np.ndarray:
-        """DART's step from a given state, without bookkeeping (for finite differences)."""
+    def _advance(self, state: np.ndarray, action: np.ndarray, wrenches: np.ndarray, added=None) -> np.ndarray:
+        """The step from a given state, without bookkeeping (for finite differences)."""
         self.set_flat_state(state)
         self._apply(action, wrenches)
         self.world.step()
+        if added is not None:
+            self._step_with_added_mass(state, action, wrenches, added)
         return self.flat_state()
 
     def _check_finite(self, s: np.ndarray) -> None:

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from cosim.engines import rigid_added_mass
 from cosim.engines.so3 import left_jacobian, left_jacobian_inv
 from cosim.errors import InputError, SimulationError
 
@@ -31,6 +32,7 @@ class StepRecord:
     step: int = 0  # 1 for the engine's first step
     clamped: np.ndarray | None = None  # (action_size,) bool: velocity commands clipped to the joint limits
     constraint: tuple[str, float] | None = None  # ("skeleton/dof", force) when a limit or contact acted
+    added: np.ndarray | None = None  # (bodies, 6, 6) the coupling's added masses (``rigid_added_mass``)
 
 
 # ------------------------------------------------------------------------------- joint integration Jacobian
@@ -56,12 +58,14 @@ def position_step_jacobian(kind: str, q_next: np.ndarray, qd_next: np.ndarray, R
 class RigidAdjoint:
     """``vjp_flat`` and ``body_states_vjp`` of the rigid engine."""
 
-    def vjp_flat(self, record: StepRecord, grad_next_state: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(grad_state, grad_action, grad_wrenches) of one step for the adjoint ``grad_next_state``.
+    def vjp_flat(self, record: StepRecord, grad_next_state: np.ndarray) -> tuple:
+        """(grad_state, grad_action, grad_wrenches, grad_added_mass or None) of one step for the adjoint
+        ``grad_next_state``.
 
         Action and wrench blocks: closed form from DART's M, damping D and Jacobians at the step's start.
         Per skeleton, with F the force-driven dofs, K the velocity-controlled ones and A = M_FF + dt D_FF:
-        qd'_F = qd_F + dt A^-1 (tau_F + (J^T F)_F - C_F - D qd_F - M_FK (target - qd_K)/dt), qd'_K = target.
+        qd'_F = qd_F + dt A^-1 (tau_F + (J^T F)_F - C_F - D qd_F - M_FK (target - qd_K)/dt), qd'_K = target;
+        with added masses M + A_hat in place of M (``rigid_added_mass``), and dL/dA_b in closed form.
         Positions: q' = q + dt qd' except free/ball joints (closed form,
         ``position_step_jacobian``). These blocks are exact for DART's unconstrained step; a step in which a
         joint limit or a contact acted (a non-zero constraint force, ``StepRecord.constraint``) raises
@@ -86,7 +90,8 @@ class RigidAdjoint:
         current = self.flat_state()
         self.set_flat_state(record.state)
         grad_v = self._velocity_adjoint(g, record.next_state)
-        grad_tau, grad_cmd = self._force_adjoints(grad_v)
+        A_hat = None if record.added is None else rigid_added_mass.generalised(self, record.added)
+        grad_tau, grad_cmd = self._force_adjoints(grad_v, A_hat)
         grad_action = self._action_adjoint(grad_tau, grad_cmd)
         if record.clamped is not None:
             grad_action[record.clamped] = 0.0  # a clipped command does not depend on its action
@@ -95,9 +100,14 @@ class RigidAdjoint:
             if self._bodies
             else np.zeros((0, 6))
         )
+        grad_added = None
+        if record.added is not None:
+            change = record.next_state[self.dofs :] - record.state[self.dofs :]
+            y = [t / self.dt for t in grad_tau]
+            grad_added = rigid_added_mass.added_mass_adjoint(self, record.added, y, change)
         grad_state = self._state_vjp_fd(record, g)
         self.set_flat_state(current)
-        return grad_state, grad_action, grad_wrenches
+        return grad_state, grad_action, grad_wrenches, grad_added
 
     def _velocity_adjoint(self, g: np.ndarray, next_state: np.ndarray) -> np.ndarray:
         """Adjoint of qd' (total): g_qd + (d q'/d qd')^T g_q."""
@@ -109,19 +119,20 @@ class RigidAdjoint:
             grad_v[idx] = g_qd[idx] + B.T @ g_q[idx]
         return grad_v
 
-    def _force_adjoints(self, grad_v: np.ndarray) -> tuple[list[np.ndarray], list[np.ndarray]]:
-        """Per skeleton: adjoints of the generalised forces and of the velocity targets (at the current q)."""
+    def _force_adjoints(self, grad_v: np.ndarray, A_hat: list | None = None) -> tuple[list, list]:
+        """Per skeleton: adjoints of the generalised forces and of the velocity targets (at the current q),
+        with the added masses ``A_hat`` (per skeleton, dofs x dofs; None: none)."""
         grad_tau, grad_cmd = [], []
         for k, skel in enumerate(self.skeletons):
             gv = grad_v[self._offsets[k] : self._offsets[k + 1]]
             kin = self._kinematic[k]
             free = ~kin
-            M = skel.getMassMatrix()
+            M = np.asarray(skel.getMassMatrix()) + (0.0 if A_hat is None else A_hat[k])
             D = np.array([skel.getDof(i).getDampingCoefficient() for i in range(skel.getNumDofs())])
             y = np.zeros_like(gv)
             if free.any():
                 A = M[np.ix_(free, free)] + self.dt * np.diag(D[free])
-                y[free] = np.linalg.solve(A, gv[free])
+                y[free] = np.linalg.solve(A.T, gv[free])
             cmd = np.zeros_like(gv)
             cmd[kin] = gv[kin] - M[np.ix_(kin, free)] @ y[free]
             grad_tau.append(self.dt * y)
@@ -146,8 +157,8 @@ class RigidAdjoint:
         for i in range(2 * self.dofs):
             e = np.zeros(2 * self.dofs)
             e[i] = FD_EPS
-            plus = self._advance(record.state + e, record.action, record.wrenches)
-            minus = self._advance(record.state - e, record.action, record.wrenches)
+            plus = self._advance(record.state + e, record.action, record.wrenches, record.added)
+            minus = self._advance(record.state - e, record.action, record.wrenches, record.added)
             out[i] = g @ (plus - minus) / (2 * FD_EPS)
         return out
 
