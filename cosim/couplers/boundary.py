@@ -51,7 +51,9 @@ class RigidBoundaries:
     material that follows the body's twist [omega; v] (about ``pos``) over the frame, as a
     rigid-body inertia: sum_p m_p e_p J_p^T J_p, J_p = [-[r_p]x, I] the map from the twist to the
     velocity of the body point under particle p (r_p = x_p - pos), e_p the contact model's share
-    of p that follows it (``engagement``), at the frame's end.
+    of p that follows it (``engagement``), at the frame's end. Its boundary states then also take
+    "handover" (n, k): each body's twist change over its last step, which the material it
+    engages gets at the next step's start (``cosim.couplers.handover``).
     """
 
     def __init__(
@@ -74,6 +76,8 @@ class RigidBoundaries:
         self.engagement = None  # the contact model that says how much material follows a body (forecast)
         k = self.wdim + dim
         self.contact_mass = field_pool.matrix(self, k, k, float, shape=(max(self.n, 1),), needs_grad=grad)
+        self.handover_v = field_pool.vector(self, k, float, shape=(max(self.n, 1),), needs_grad=grad)
+        self.substeps_now = field_pool.scalar(self, ti.i32, shape=())
         self._substeps = 1
 
     # ------------------------------------------------------------------ what a contact model asks
@@ -123,6 +127,14 @@ class RigidBoundaries:
         arrays = [np.ascontiguousarray(states[k], dtype=self.real) for k in BOUNDARY_KEYS]
         self._substeps = len(arrays[0])
         self._write_states(*arrays, self._substeps)
+        if "added_mass" in self.capabilities:
+            self.substeps_now[None] = self._substeps
+            handover = states.get("handover")
+            k = self.wdim + self.dim
+            full = np.zeros((max(self.n, 1), k), dtype=self.real)
+            if handover is not None:
+                full[: self.n] = handover
+            self.handover_v.from_numpy(full)
 
     @ti.kernel
     def _write_states(
@@ -193,6 +205,19 @@ class RigidBoundaries:
                     self.contact_mass[b] += (e.mass_of(p) * share) * (J.transpose() @ J)
 
     @ti.func
+    def handover(self, s, x, p):
+        """[m/s] The velocity change the material at x (particle p) gets from the bodies at substep s:
+        sum_b e_b J(x - pos) dv_b (``cosim.couplers.handover``)."""
+        dv = ti.Vector.zero(float, self.dim)
+        e = self.engagement.engine
+        offset = surface_offset(e, ti.static(source_offset(self, self.engagement.offset)), p)
+        for b in ti.static(range(self.n)):
+            share = self.engagement.engagement(self.distance(s, b, x, p) - offset, self.substeps_now[None])
+            if share > 0:
+                dv += share * (self.twist_map(x - self.pos[s, b]) @ self.handover_v[b])
+        return dv
+
+    @ti.func
     def twist_map(self, r):
         """J (d x k): the velocity of the body point at offset r [m] from the origin is J [omega; v]."""
         J = ti.Matrix.zero(float, self.dim, self.wdim + self.dim)
@@ -207,7 +232,8 @@ class RigidBoundaries:
         return J
 
     def zero_grad(self) -> None:
-        for fld in (self.pos, self.rot, self.vel, self.omega, self.impulse, self.angular_impulse, self.contact_mass):
+        fields = (self.pos, self.rot, self.vel, self.omega, self.impulse, self.angular_impulse)
+        for fld in fields + (self.contact_mass, self.handover_v):
             fld.grad.fill(0)
 
     def seed_reaction_grads(self, grads: dict[str, np.ndarray]) -> None:
@@ -227,5 +253,8 @@ class RigidBoundaries:
             self._contact_mass.grad(self.engagement.engine._slot, K - 1, K)
 
     def state_grads(self, K: int) -> dict[str, np.ndarray]:
-        """dL/d(body states) of substeps 0..K-1 (BoundaryStates layout) after a vjp."""
-        return {k: getattr(self, k).grad.to_numpy()[:K].astype(np.float64) for k in BOUNDARY_KEYS}
+        """dL/d(body states) of substeps 0..K-1 (BoundaryStates layout; and of "handover") after a vjp."""
+        out = {k: getattr(self, k).grad.to_numpy()[:K].astype(np.float64) for k in BOUNDARY_KEYS}
+        if "added_mass" in self.capabilities:
+            out["handover"] = self.handover_v.grad.to_numpy()[: self.n].astype(np.float64)
+        return out

@@ -106,6 +106,8 @@ class ClothBoundary:
         self.vel = field_pool.vector(self, 3, float, shape=V, needs_grad=grad)
         self.impulse = field_pool.vector(self, 3, float, shape=V, needs_grad=grad)
         self.contact_mass = field_pool.scalar(self, float, shape=V, needs_grad=grad)
+        self.handover_v = field_pool.vector(self, 3, float, shape=V, needs_grad=grad)  # ``handover``
+        self.substeps_now = field_pool.scalar(self, ti.i32, shape=())
         self.engagement = None  # the contact model that says how much material follows the sheet (forecast)
         self._substeps = 1  # K of the step written last
         self.node_face = field_pool.scalar(self, ti.i32, shape=engine.nodes)
@@ -290,6 +292,12 @@ class ClothBoundary:
         self.tracer.mesh_moved(x)
         self.tracer.set_state(states.get("tracking"))
         self._substeps = int(states.get("substeps", 1))
+        self.substeps_now[None] = self._substeps
+        handover = states.get("handover")
+        if handover is None:
+            self.handover_v.fill(0)
+        else:
+            self.handover_v.from_numpy(np.asarray(handover, dtype=self.real))
         if self.queries_nodes:
             self._query_nodes()
 
@@ -338,10 +346,28 @@ class ClothBoundary:
                             for i in ti.static(range(3)):
                                 self.contact_mass[tri[i]] += weights[j, i] * m
 
+    @ti.func
+    def handover(self, s, x, p):
+        """[m/s] The velocity change particle p gets from the sheet at substep s: its engaged share times the
+        vertices' "handover" velocity changes under its contact frame (``cosim.couplers.handover``)."""
+        dv = ti.Vector.zero(float, 3)
+        k = s % self.slots
+        if self.tracer.face_s[k, p] >= 0:
+            share = self.engagement.engagement(self.frame_d[k, p], self.substeps_now[None])
+            if share > 0:
+                faces, weights = self._vertex_weights(s, self.frame_x[k, p], p)
+                for j in ti.static(range(CANDIDATES)):
+                    if faces[j] >= 0:
+                        tri = self.query.faces[faces[j]]
+                        for i in ti.static(range(3)):
+                            dv += (share * weights[j, i]) * self.handover_v[tri[i]]
+        return dv
+
     def zero_grad(self) -> None:
         for fld in (self.query.verts, self.vel, self.impulse, self.frame_d, self.frame_n, self.frame_x, self.frame_w):
             fld.grad.fill(0)
         self.contact_mass.grad.fill(0)
+        self.handover_v.grad.fill(0)
 
     def seed_reaction_grads(self, grads: dict[str, np.ndarray]) -> None:
         """dL/d(impulse) (V, 3) and dL/d(mass) (V,), after ``zero_grad`` and before the substeps' adjoints:
@@ -355,10 +381,11 @@ class ClothBoundary:
             self._contact_mass.grad(K - 1, (K - 1) % self.slots, K)
 
     def state_grads(self, K: int) -> dict[str, np.ndarray]:
-        """dL/dx, dL/dv (V, 3) of the cloth states written for the step, after a vjp."""
+        """dL/dx, dL/dv, dL/d(handover) (V, 3) of the cloth states written for the step, after a vjp."""
         return {
             "x": self.query.verts.grad.to_numpy().astype(np.float64),
             "v": self.vel.grad.to_numpy().astype(np.float64),
+            "handover": self.handover_v.grad.to_numpy().astype(np.float64),
         }
 
     @ti.kernel

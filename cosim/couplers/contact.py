@@ -168,9 +168,13 @@ class ForecastContact:
         self.track_objective = False
         self.objective_terms: list[tuple[float, float]] = []
         self.upstream = engine.attach_grid_hook(self)
-        for source in self.sources:  # sources that report the mass their contact carries ask this model how much
-            if declares(source, "added_mass"):
-                source.engagement = self
+        carried = [source for source in self.sources if declares(source, "added_mass")]
+        for source in carried:  # sources that report the mass their contact carries ask this model how much
+            source.engagement = self
+        if carried:  # and hand that material the bodies' velocity changes
+            from cosim.couplers.handover import Handover
+
+            self.handover = Handover(engine, carried)
 
     @ti.func
     def _within_threshold(self, s, x, p):

@@ -11,38 +11,35 @@ moves on to v^{n+1}, and the next step's reaction drags the sheet back by
 A (v^{n+1} - v^n): on a model problem a perturbation of the sheet's velocity is
 multiplied by -A / m per frame (m the vertex mass), however short the frame: a sheet
 carrying material heavier than itself flutters, and gradients over long contacts are
-noise. So the reaction enters linearised, as a mass: the material that followed v_b follows the sheet to v^{n+1} too, which costs
-A (v^{n+1} - v_b) of momentum:
+noise. So the reaction enters linearised, as a mass: the material that followed v_b follows
+the sheet to v^{n+1} too:
 
-    (m + A^n)(v^{n+1} - v^n) = T f_cloth + J^n + A^{n-1}(v^n - v_b^{n-1})
+    (m + A^n)(v^{n+1} - v^n) = T f_cloth + J^n
 
-The last term pays back, one step late, the momentum the previous step's added mass
-took from the sheet and the MPM's material delivers only now (its reaction J^n
-includes the catch-up -A^{n-1}(v^n - v_b^{n-1})), so the momentum the sheet receives
-over a run is exactly the MPM's reactions, delayed by a step. On the model problem
-(material of mass A_true in inelastic contact) a perturbation is multiplied by
-(A - A_true) / (m + A) per frame: 0 with A = A_true, of modulus below one for any
-A > (A_true - m) / 2. So A must be the material's actual response to the sheet's
-velocity over a frame, dJ/dv_b, not the mass merely near the sheet (much of which the
-contact moves only partly within a frame). A^n is the contact model's engagement
-summed per vertex (``ClothBoundary._contact_mass``, ``ForecastContact.engagement``),
-which follows how far each substep's contact moves a particle towards the sheet's
-velocity. Other contact models give no engagement yet: A = 0, the explicit exchange.
-Known defect: the sheet is frozen at x^n over the substeps while its contact velocity
-is v_b, so material that follows a moving sheet crosses that frozen position by up to
-T |v_b| per frame (and is traced inside until it is back on its side); the fix is to
-move the sheet with v_b over the substeps.
+and that material is handed the sheet's velocity change v^{n+1} - v^n at the start of the
+next step (``cosim.couplers.handover``: each engaged particle gets its share of the change of
+the vertices under it), so it does not drag the sheet back. The momentum the sheet gave up to
+carry it, A^n (v^{n+1} - v^n), is the momentum the material receives. On the model problem
+(material of mass A_true in inelastic contact) a perturbation dies when A = A_true. So A must
+be the material's actual response to the sheet's velocity over a frame, dJ/dv_b, not the
+mass merely near the sheet (much of which the contact moves only partly within a frame).
+A^n is the contact model's engagement summed per vertex (``ClothBoundary._contact_mass``,
+``ForecastContact.engagement``), which follows how far each substep's contact moves a
+particle towards the sheet's velocity. Other contact models give no engagement yet: A = 0,
+the explicit exchange. Known defect: the sheet is frozen at x^n over the substeps while its
+contact velocity is v_b, so material that follows a moving sheet crosses that frozen position
+by up to T |v_b| per frame (and is traced inside until it is back on its side); the fix is
+to move the sheet with v_b over the substeps.
 
-The coupler's state carries A^{n-1} (V,) [kg] and v_b^{n-1} (V, 3) [m/s] from step to
-step, with the penetration tracing's per-particle state (``state`` / ``set_state``).
+The coupler's state carries v_b^{n-1} (V, 3) [m/s] (None at the start: nothing to hand over)
+from step to step, with the penetration tracing's per-particle state (``state`` / ``set_state``).
 
 Backward (A is a smooth function of the particles and the sheet, so it is differentiated
-too): ``forces_vjp`` gives dL/dJ = g / T (g = dL/dF), dL/dA^n = the cloth's dL/d(its
-added mass) + dL/d(the carried A^n), both handed to the MPM's vjp as the reaction
-adjoint "mass"; this coupler's state before the step gets dL/dv_b^{n-1} = -A^{n-1} g / T
-and dL/dA^{n-1} = g . (v_b^n - v_b^{n-1}) / T; the cloth's v^n gets A^{n-1} g / T.
-``boundary_vjp`` passes the MPM's dL/d{x, v} of the boundary states to the cloth's
-state, plus that carry and dL/d(the carried v_b^n = v^n). Tracing carries no gradient.
+too): ``forces_vjp`` gives dL/dJ = g / T (g = dL/dF) and dL/dA^n = the cloth's dL/d(its
+added mass), both handed to the MPM's vjp as the reaction adjoints; ``boundary_vjp`` passes
+the MPM's dL/d{x, v} of the boundary states to the cloth's state, the hand-over's adjoint
+dL/d(v^n - v_b^{n-1}) to the cloth's v^n and, negated, to this coupler's state before the
+step, and dL/d(the carried v_b^n = v^n) to v^n. Tracing carries no gradient.
 """
 
 from __future__ import annotations
@@ -58,8 +55,7 @@ from cosim.errors import SimulationError
 class ClothCouplingRecord:
     dt: float  # [s] MPM substep
     substeps: int
-    owed_mass: np.ndarray  # (V,) [kg] A^{n-1}, the added mass whose momentum this step pays back
-    catch_up: np.ndarray  # (V, 3) [m/s] v_b^n - v_b^{n-1}, the velocity change it pays for
+    handover: bool  # whether this step's MPM hands over a velocity change (not at the start)
 
     @property
     def frame(self) -> float:
@@ -80,31 +76,32 @@ class MPMClothCoupler:
         self.name = self.source = name or cloth.name
         self.max_travel = float(max_travel)  # [m] per frame: the tracing band (``ClothBoundary.max_step_travel``)
         self.added_mass = bool(added_mass)
-        V = len(cloth.state()["v"])
-        self._fresh = {"tracking": None, "added_mass": np.zeros(V), "boundary_v": np.zeros((V, 3))}
+        self._fresh = {"tracking": None, "boundary_v": None}
         self._state = dict(self._fresh)
         self._v_b: np.ndarray | None = None
 
     def state(self) -> dict:
-        """{"tracking": {face, side, inside} (N,) int or None (fresh), "added_mass": (V,) [kg] A^{n-1},
-        "boundary_v": (V, 3) [m/s] v_b^{n-1}}: what the next step reads."""
-        out = {k: None if v is None else np.array(v) for k, v in self._state.items() if k != "tracking"}
+        """{"tracking": {face, side, inside} (N,) int or None (fresh), "boundary_v": (V, 3) [m/s] v_b^{n-1} or
+        None (fresh)}: what the next step reads."""
+        v_b = self._state["boundary_v"]
         tracking = self._state["tracking"]
-        out["tracking"] = None if tracking is None else {k: v.copy() for k, v in tracking.items()}
-        return out
+        return {
+            "tracking": None if tracking is None else {k: v.copy() for k, v in tracking.items()},
+            "boundary_v": None if v_b is None else np.array(v_b),
+        }
 
     def set_state(self, state: dict | None) -> None:
         """Restore a state from ``state()`` (None: fresh, as at the start of a run)."""
         state = state or self._fresh
-        tracking = state["tracking"]
+        tracking, v_b = state["tracking"], state.get("boundary_v")
         self._state = {
             "tracking": None if tracking is None else {k: np.array(v, dtype=np.int32) for k, v in tracking.items()},
-            "added_mass": np.array(state["added_mass"], dtype=np.float64),
-            "boundary_v": np.array(state["boundary_v"], dtype=np.float64),
+            "boundary_v": None if v_b is None else np.array(v_b, dtype=np.float64),
         }
 
     def boundary(self, dt: float, substeps: int) -> tuple[dict, ClothCouplingRecord]:
-        """The cloth's current vertex positions and velocities and the tracing state, for the MPM step."""
+        """The cloth's current vertex positions and velocities, the tracing state and the velocity change to
+        hand over (``cosim.couplers.handover``), for the MPM step."""
         s = self.cloth.state()
         travel = float(np.linalg.norm(s["v"], axis=1).max()) * dt * substeps
         if travel > self.max_travel:
@@ -117,44 +114,45 @@ class MPMClothCoupler:
         states["tracking"] = self._state["tracking"]
         states["substeps"] = substeps
         self._v_b = states["v"]
-        catch_up = self._v_b - self._state["boundary_v"]
-        return states, ClothCouplingRecord(dt, substeps, self._state["added_mass"], catch_up)
+        handover = self.added_mass and self._state["boundary_v"] is not None
+        if handover:
+            states["handover"] = self._v_b - self._state["boundary_v"]
+        return states, ClothCouplingRecord(dt, substeps, handover)
 
     def forces(self, record: ClothCouplingRecord, reactions: dict) -> dict:
-        """{"forces": (V, 3) [N] the reaction impulses over the frame plus the momentum owed from the last
-        step, "added_mass": (V,) [kg] A^n}; keeps the tracing state and A^n, v_b^n for the next step."""
-        owed = record.owed_mass[:, None] * record.catch_up
+        """{"forces": (V, 3) [N] the reaction impulses over the frame, "added_mass": (V,) [kg] A^n}; keeps the
+        tracing state and v_b^n for the next step."""
         added = reactions["mass"] if self.added_mass else np.zeros_like(reactions["mass"])
-        self._state = {"tracking": reactions["tracking"], "added_mass": added, "boundary_v": self._v_b}
-        return {"forces": (reactions["impulse"] + owed) / record.frame, "added_mass": added}
+        self._state = {"tracking": reactions["tracking"], "boundary_v": self._v_b}
+        return {"forces": reactions["impulse"] / record.frame, "added_mass": added}
 
     def forces_vjp(
         self, record: ClothCouplingRecord, grad_load: dict, grad_state: dict | None = None
     ) -> tuple[dict | None, dict, dict]:
         """From dL/d{forces, added_mass} of the cloth's step and dL/d(this coupler's state after the step):
-        (dL/d{impulse, mass} of the MPM's reactions, the carry to the cloth's v^n, dL/d(this coupler's
-        state before the step))."""
-        V = len(record.owed_mass)
+        (dL/d{impulse, mass} of the MPM's reactions, the carry to ``boundary_vjp``, dL/d(this coupler's
+        state before the step), which ``boundary_vjp`` completes)."""
+        V = len(self.cloth.state()["v"])
         grad_state = grad_state or {}
-        carry = np.zeros((V, 3))
+        carry_v = np.zeros((V, 3))
         if grad_state.get("boundary_v") is not None:
-            carry += grad_state["boundary_v"]  # the carried v_b^n is the cloth's v^n
+            carry_v += grad_state["boundary_v"]  # the carried v_b^n is the cloth's v^n
         g_mass = np.zeros(V)
-        if self.added_mass:  # A^n is both the step's inertia and the carried A^{n-1} of the next step
-            for g in (grad_load.get("added_mass"), grad_state.get("added_mass")):
-                if g is not None:
-                    g_mass = g_mass + g
-        before = {"boundary_v": np.zeros((V, 3)), "added_mass": np.zeros(V)}
-        if grad_load.get("forces") is None:
-            return {"impulse": np.zeros((V, 3)), "mass": g_mass}, {"v": carry}, before
-        g = np.asarray(grad_load["forces"]) / record.frame
-        owed = record.owed_mass[:, None] * g
-        before = {"boundary_v": -owed, "added_mass": np.sum(g * record.catch_up, axis=1)}
-        return {"impulse": g, "mass": g_mass}, {"v": carry + owed}, before
+        if self.added_mass and grad_load.get("added_mass") is not None:
+            g_mass = g_mass + grad_load["added_mass"]
+        before = {"boundary_v": np.zeros((V, 3))}
+        g = np.zeros((V, 3)) if grad_load.get("forces") is None else np.asarray(grad_load["forces"]) / record.frame
+        return {"impulse": g, "mass": g_mass}, {"v": carry_v, "before": before}, before
 
     def budgeted(self) -> bool:
         """The cloth's energy is in the system's budget: its contact work on the material is internal."""
         return True
 
     def boundary_vjp(self, record: ClothCouplingRecord, grad_boundary: dict, carry: dict) -> dict[str, np.ndarray]:
-        return {"x": grad_boundary["x"], "v": grad_boundary["v"] + carry["v"]}
+        """dL/d{x, v} of the cloth's state before the step; the hand-over's adjoint also completes dL/d(this
+        coupler's state before the step) in ``carry["before"]``."""
+        g_v = grad_boundary["v"] + carry["v"]
+        if record.handover:
+            g_v = g_v + grad_boundary["handover"]
+            carry["before"]["boundary_v"] = -grad_boundary["handover"]
+        return {"x": grad_boundary["x"], "v": g_v}

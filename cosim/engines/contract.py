@@ -185,8 +185,9 @@ CAPABILITIES = {
     "penetration tracing), part of the system's state under 'couplers'",
     # boundary sources
     "substep_hooks": "before_substep(src, s) and before_substep_grad(src, s) around each MPM substep",
-    "added_mass": "its reactions carry 'mass' (V,) [kg], the material that follows it over a frame, from the "
-    "contact model set as its engagement (engagement(d, K), ti.func); its reaction adjoint takes dL/d(mass)",
+    "added_mass": "its reactions carry 'mass', the material that follows it over a frame (a cloth: (V,) [kg] per "
+    "vertex; rigid bodies: (n, k, k) per body on its twist), from the contact model set as its engagement "
+    "(engagement(d, K), ti.func; its engine and offset); its reaction adjoint takes dL/d(mass)",
     "node_queries": "a queries_nodes flag: while True it answers about grid nodes (p = -1), which the grid model asks",
 }
 

@@ -348,6 +348,10 @@ class RigidEngine(RigidAdjoint):
         energy = sum(s.computeKineticEnergy() + s.computePotentialEnergy() for s in passive)
         return float(energy), float(sum(s.getMass() for s in passive))
 
+    def has_free_dofs(self, body: int) -> bool:
+        """Whether body ``body``'s skeleton has dofs no velocity command prescribes (forces move them)."""
+        return bool((~self._kinematic[self._bodies[body][0]]).any())
+
     def passive_bodies(self) -> np.ndarray:
         """(len(body_names),) bool: bodies of skeletons no action drives (in the energy budget)."""
         return self._passive.copy()

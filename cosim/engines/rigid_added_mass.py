@@ -30,7 +30,9 @@ def check_added_mass(added, bodies: int) -> np.ndarray | None:
         return None
     added = np.asarray(added, dtype=np.float64)
     if added.shape != (bodies, 6, 6):
-        raise InputError(f"rigid added_mass must have shape ({bodies}, 6, 6) (bodies, twist x twist), got {added.shape}")
+        raise InputError(
+            f"rigid added_mass must have shape ({bodies}, 6, 6) (bodies, twist x twist), got {added.shape}"
+        )
     if not np.all(np.isfinite(added)):
         raise InputError("rigid added_mass contains non-finite values")
     return added if np.any(added) else None

@@ -141,11 +141,12 @@ class Manipulators:
     rigid_sources: list = field(default_factory=list)  # the rigid ones (``RigidBoundaries``), in body order
     cloths: list = field(default_factory=list)  # cloth engines
 
-    def couple(self, mpm, coupler, grids: list, dim: int, slots: int, grad: bool) -> None:
-        """Attach ``coupler``'s boundary source (``grids``: one SDF per body) to the MPM."""
+    def couple(self, mpm, coupler, grids: list, dim: int, slots: int, grad: bool, added_mass: bool = False) -> None:
+        """Attach ``coupler``'s boundary source (``grids``: one SDF per body; ``added_mass``: it reports the
+        material that follows each body) to the MPM."""
         from cosim.couplers.boundary import RigidBoundaries
 
-        source = RigidBoundaries(grids, dim, slots, requires_grad=grad)
+        source = RigidBoundaries(grids, dim, slots, requires_grad=grad, added_mass=added_mass)
         mpm.attach_boundary(coupler.source, source)
         self.couplers.append(coupler)
         self.sources.append(source)
@@ -173,7 +174,8 @@ def build_manipulators(scene: Scene, mpm, stepping: Stepping, start: Start) -> M
         if start.dart_plan is not None:
             out.plans[engine.name] = start.dart_plan
         if start.dart_coupler is not None:
-            out.couple(mpm, start.dart_coupler, start.articulated.grids, scene.dim, slots, grad)
+            coupler = start.dart_coupler
+            out.couple(mpm, coupler, start.articulated.grids, scene.dim, slots, grad, coupler.added_mass)
     if out.sources:  # with nothing the MPM sees, no contact hook
         attach_contact(mpm, out.sources, scene.contact)
     return out

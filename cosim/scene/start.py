@@ -135,7 +135,8 @@ def _articulated(scene: Scene, start: Start) -> None:
             scene.articulated.actions, engine.action_size, articulated.n_segments, "articulated.actions"
         )
     if articulated.coupled:
-        start.dart_coupler = MPMRigidCoupler(engine, articulated.coupled, scene.dim)
+        inertial = any(engine.has_free_dofs(i) for i in articulated.coupled)  # else nothing to add mass to
+        start.dart_coupler = MPMRigidCoupler(engine, articulated.coupled, scene.dim, added_mass=inertial)
 
 
 def _rigid_view(scene: Scene, start: Start) -> None:
