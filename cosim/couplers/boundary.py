@@ -77,6 +77,7 @@ class RigidBoundaries:
         k = self.wdim + dim
         self.contact_mass = field_pool.matrix(self, k, k, float, shape=(max(self.n, 1),), needs_grad=grad)
         self.handover_v = field_pool.vector(self, k, float, shape=(max(self.n, 1),), needs_grad=grad)
+        self.handover_from = field_pool.vector(self, k, float, shape=(max(self.n, 1),), needs_grad=grad)
         self.substeps_now = field_pool.scalar(self, ti.i32, shape=())
         self._substeps = 1
 
@@ -129,12 +130,12 @@ class RigidBoundaries:
         self._write_states(*arrays, self._substeps)
         if "added_mass" in self.capabilities:
             self.substeps_now[None] = self._substeps
-            handover = states.get("handover")
             k = self.wdim + self.dim
-            full = np.zeros((max(self.n, 1), k), dtype=self.real)
-            if handover is not None:
-                full[: self.n] = handover
-            self.handover_v.from_numpy(full)
+            for key, fld in (("handover", self.handover_v), ("handover_from", self.handover_from)):
+                full = np.zeros((max(self.n, 1), k), dtype=self.real)
+                if states.get(key) is not None:
+                    full[: self.n] = states[key]
+                fld.from_numpy(full)
 
     @ti.kernel
     def _write_states(
@@ -196,25 +197,31 @@ class RigidBoundaries:
         e = self.engagement.engine
         ti.loop_config(serialize=e.serial_particle_loops)
         for p in range(e.count[None]):
-            x = e.x[src, p]
+            x, v = e.x[src, p], e.v[src, p]
             offset = surface_offset(e, ti.static(source_offset(self, self.engagement.offset)), p)
             for b in ti.static(range(self.n)):
-                share = self.engagement.engagement(self.distance(s, b, x, p) - offset, K)
+                d, n = self.distance_normal(s, b, x, p)
+                vn = (v - self.contact_velocity(s, b, x, p)).dot(n)
+                share = self.engagement.engagement(self, d - offset, K, p, vn)
                 if share > 0:
                     J = self.twist_map(x - self.pos[s, b])
                     self.contact_mass[b] += (e.mass_of(p) * share) * (J.transpose() @ J)
 
     @ti.func
-    def handover(self, s, x, p):
-        """[m/s] The velocity change the material at x (particle p) gets from the bodies at substep s:
-        sum_b e_b J(x - pos) dv_b (``cosim.couplers.handover``)."""
+    def handover(self, s, x, v, p):
+        """[m/s] The velocity change the material at x moving with v (particle p) gets from the bodies at
+        substep s: sum_b e_b J(x - pos) dv_b (``cosim.couplers.handover``), e_b engaged with the twist
+        "handover_from" the material followed."""
         dv = ti.Vector.zero(float, self.dim)
         e = self.engagement.engine
         offset = surface_offset(e, ti.static(source_offset(self, self.engagement.offset)), p)
         for b in ti.static(range(self.n)):
-            share = self.engagement.engagement(self.distance(s, b, x, p) - offset, self.substeps_now[None])
+            d, n = self.distance_normal(s, b, x, p)
+            J = self.twist_map(x - self.pos[s, b])
+            vn = (v - J @ self.handover_from[b]).dot(n)
+            share = self.engagement.engagement(self, d - offset, self.substeps_now[None], p, vn)
             if share > 0:
-                dv += share * (self.twist_map(x - self.pos[s, b]) @ self.handover_v[b])
+                dv += share * (J @ self.handover_v[b])
         return dv
 
     @ti.func
@@ -233,7 +240,7 @@ class RigidBoundaries:
 
     def zero_grad(self) -> None:
         fields = (self.pos, self.rot, self.vel, self.omega, self.impulse, self.angular_impulse)
-        for fld in fields + (self.contact_mass, self.handover_v):
+        for fld in fields + (self.contact_mass, self.handover_v, self.handover_from):
             fld.grad.fill(0)
 
     def seed_reaction_grads(self, grads: dict[str, np.ndarray]) -> None:
@@ -257,4 +264,5 @@ class RigidBoundaries:
         out = {k: getattr(self, k).grad.to_numpy()[:K].astype(np.float64) for k in BOUNDARY_KEYS}
         if "added_mass" in self.capabilities:
             out["handover"] = self.handover_v.grad.to_numpy()[: self.n].astype(np.float64)
+            out["handover_from"] = self.handover_from.grad.to_numpy()[: self.n].astype(np.float64)
         return out

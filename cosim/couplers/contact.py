@@ -21,7 +21,9 @@ from cosim.couplers.contact_rules import (
     BLEND_WHERE,
     PROJECT_SOFT,
     STANDARD_GRAVITY,
+    PARTING_SPEED,
     TAPER,
+    TOUCH,
     default_alpha,
     frictional_bc,
     source_offset,
@@ -294,16 +296,41 @@ class ForecastContact:
                 e.x.grad[src, p] += g_x
 
     @ti.func
-    def engagement(self, d, K):
-        """The share of a particle's mass that follows a sheet's velocity over a frame of K substeps when it
-        lies at traced distance d [m]: each substep's BC_p moves it alpha blend(d) of the way, so a change
-        of the sheet's velocity reaches 1 - (1 - alpha blend(d))^K of it (0 beyond the threshold). The
-        added mass of ``cosim.couplers.mpm_cloth`` sums it. It counts approaching and separating material
-        alike, so it is an upper bound while material leaves the sheet (whose BC then does not act)."""
+    def engagement(self, source: ti.template(), d, K, p, vn):
+        """The share of particle p's mass that follows ``source``'s velocity over a frame of K substeps when it
+        lies at gap d [m] from it and moves away from it at vn [m/s] (its velocity relative to the surface's
+        along the surface's outward normal): each substep's BC_p moves it alpha s of the way, so a change
+        of the body's velocity reaches 1 - (1 - alpha s)^K of it (0 beyond the threshold). s: the blended
+        BC's weight blend(d) where it is blended (it acts across the band); else ``touching(d)`` (the
+        speculative BC acts on a particle only as it reaches the surface: material merely near a body does
+        not follow it); times ``parting(vn)``: contact pushes, never pulls, so material leaving the surface
+        does not follow it. The added masses (``cosim.couplers.mpm_cloth``, ``mpm_rigid``) sum it and the
+        hand-over (``cosim.couplers.handover``) gives it the body's velocity change."""
         share = 0.0
         if d < self.threshold:
-            share = 1.0 - ti.pow(1.0 - self.alpha * self.blend(d), K)
+            blended = 0
+            if ti.static(self.blend_where == "all" or traits_of(source).blend_all):
+                blended = 1
+            elif ti.static(self.blend_where == "liquids"):
+                blended = self.engine.is_liquid(p)
+            weight = self.touching(d)
+            if blended:
+                weight = self.blend(d)
+            share = 1.0 - ti.pow(1.0 - self.alpha * weight * self.parting(vn), K)
         return share
+
+    @ti.func
+    def parting(self, vn):
+        """1 for material approaching or at rest on a surface (vn <= 0 [m/s]), falling to 0 at vn =
+        PARTING_SPEED by a C2 smoothstep."""
+        t = ti.min(ti.max(1.0 - vn / PARTING_SPEED, 0.0), 1.0)
+        return t * t * t * (10.0 - 15.0 * t + 6.0 * t * t)
+
+    @ti.func
+    def touching(self, d):
+        """1 at or inside the surface (gap d <= 0), falling to 0 at d = TOUCH cells by a C2 smoothstep."""
+        t = ti.min(ti.max(1.0 - d / (TOUCH * self.engine.dx), 0.0), 1.0)
+        return t * t * t * (10.0 - 15.0 * t + 6.0 * t * t)
 
     @ti.func
     def blend(self, d):
