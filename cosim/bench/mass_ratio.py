@@ -1,79 +1,142 @@
-"""`cosim bench coupling --sweep`: a light body resting on heavy material, across mass ratios.
+"""The mass-ratio sweep of `cosim bench coupling`: a light body resting on heavy material.
 
-The light body is a cloth sheet or a DART free plate (2D: a planar joint) lying on an elastic
-block of density 1000 kg/m^3 that rests on the domain's floor; r = block density x dx / the body's
-areal density [kg/m^2] (the material one cell deep against the body). Per ratio, float64, forecast
-contact with friction:
+The light body is a DART free plate (2D, a planar joint) or a cloth sheet (3D) lying on an
+elastic block of density 1000 kg/m^3 that rests on the domain's floor; r = block density x dx /
+the body's areal density [kg/m^2] (the material one cell deep against the body). Float64, forecast
+contact with friction 0.3. The block and body are first brought to rest in their weights
+(``settle``); then, per ratio and coupling scheme (the added-mass coupling, "strong", or the
+explicit exchange):
 
-- amplification: the body's velocity perturbed by 1e-4 m/s (vertical) at frame ``perturb_at``;
-  the per-frame growth of the difference between the two rollouts, geometric mean over the frames
-  after it until it settles (<= 1: perturbations die);
-- late rms: the body's rms velocity relative to the material under it over the last quarter of
-  the frames [m/s] (at rest: jitter of the exchange);
-- rest height: the body's mean height over the same frames against the closed form, the
-  block's top compressed by the body's weight ((rho g h^2 / 2 + w h) / E' with E' the
-  oedometric modulus, w the body's weight per area) plus half the body's thickness.
+- amplification: the body's vertical velocity perturbed by 1e-4 m/s at frame ``perturb_at`` of a
+  second rollout; the geometric mean over the frames after it of the per-frame growth of the
+  difference between the two rollouts' body velocities (<= 1: perturbations die);
+- late rms [m/s]: the body's vertical velocity relative to the block's top layer under it (the
+  rate of that layer's mean height) over the last quarter of the frames: the jitter of the exchange
+  at rest;
+- height error [m]: the body's mean height over those frames against the closed form: the top
+  of the settled block without the body, lowered by the body's weight w per area squeezing
+  the block uniaxially (w h / E', E' = E / (1 - nu^2) in plane strain, E in 3D), plus half the plate
+  (the plate meets the material a particle radius above the top particles' centres, the sheet at
+  them);
+- outcome: "ok", or the runner's message where a guard stopped the run.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 
 RATIOS = (0.1, 0.5, 1.0, 5.0, 25.0, 100.0)
 DENSITY = 1000.0  # [kg/m^3] the block
 E, NU = 2.0e5, 0.3  # [Pa] the block: its own weight squeezes it by about 1 %
-CELLS = 32
-BLOCK = (0.5, 0.25)  # [m] width, height; on the floor at the domain's boundary layer
-PLATE = (0.4, 0.02)  # [m] width, thickness
 GRAVITY = 9.81
 FLOOR = 2.75  # [cells] the block's bottom: its lowest particles (a quarter cell up) on the slip wall at 3 cells
+FRICTION = 0.3
 
 
-def plate_scene(ratio: float, frames: int) -> dict:
-    """The 2D plate-on-block scene at ``ratio`` (a scene dict for ``parse_scene``)."""
-    dx = 1.0 / CELLS
-    floor = FLOOR * dx  # the slip boundary's layer
-    top = floor + BLOCK[1]
+@dataclass(frozen=True)
+class Setup:
+    """One light body on the block: dimension, grid cells, block size (width, height[, depth]) [m], the body's
+    size (plate: width, thickness; cloth: side) [m]."""
+
+    body: str  # "plate" | "cloth"
+    dim: int
+    cells: int
+    block: tuple
+    size: tuple
+
+    @property
+    def dx(self) -> float:
+        return 1.0 / self.cells
+
+    @property
+    def top(self) -> float:
+        """[m] The block's surface at the start (its top particles a quarter cell below it)."""
+        return FLOOR * self.dx + self.block[1]
+
+
+PLATE = Setup("plate", 2, 32, (0.5, 0.25), (0.4, 0.02))
+CLOTH = Setup("cloth", 3, 16, (0.5, 0.25, 0.5), (0.4,))
+SETUPS = {"plate": PLATE, "cloth": CLOTH}
+
+
+def scene_dict(setup: Setup, ratio: float, frames: int) -> dict:
+    """The light body on the block at ``ratio`` (a scene dict for ``parse_scene``)."""
+    dx, floor = setup.dx, FLOOR * setup.dx
     areal = DENSITY * dx / ratio
-    plate_density = areal / PLATE[1]
-    link = {
-        "name": "plate",
-        "shape": {"type": "box", "size": list(PLATE)},
-        "density": plate_density,
-        "joint": {"type": "free", "position": [0.5, top + 0.5 * PLATE[1]]},
+    centre = [0.5, floor + 0.5 * setup.block[1]] + ([0.5] if setup.dim == 3 else [])
+    block = {
+        "name": "block",
+        "material": {"type": "elastic", "E": E, "nu": NU, "density": DENSITY},
+        "shape": {"type": "box", "center": centre, "size": list(setup.block)},
     }
-    return {
-        "name": f"plate_r{ratio:g}",
-        "dim": 2,
+    data = {
+        "name": f"{setup.body}_r{ratio:g}",
+        "dim": setup.dim,
         "precision": "float64",
         "steps": frames,
         "time": {"frame_dt": 2e-3, "substeps": "auto"},
-        "mpm": {
-            "grid": {"cells": CELLS},
-            "boundary": {"type": "slip"},
-            "bodies": [
-                {
-                    "name": "block",
-                    "material": {"type": "elastic", "E": E, "nu": NU, "density": DENSITY},
-                    "shape": {"type": "box", "center": [0.5, floor + 0.5 * BLOCK[1]], "size": list(BLOCK)},
-                }
-            ],
-        },
-        "articulated": {"skeletons": [{"name": "plate", "links": [link]}]},
-        "contact": {"model": "forecast", "friction": 0.3},
+        "mpm": {"grid": {"cells": setup.cells}, "boundary": {"type": "slip"}, "bodies": [block]},
+        "contact": {"model": "forecast", "friction": FRICTION},
     }
+    if setup.body == "plate":
+        width, thickness = setup.size
+        link = {
+            "name": "plate",
+            "shape": {"type": "box", "size": [width, thickness]},
+            "density": areal / thickness,
+            "joint": {"type": "free", "position": [0.5, setup.top + 0.5 * thickness]},
+        }
+        data["articulated"] = {"skeletons": [{"name": "plate", "links": [link]}]}
+    else:
+        side = setup.size[0]
+        sheet = {"type": "rectangle", "center": [0.5, setup.top - 0.25 * dx, 0.5], "size": [side, side]}
+        data["cloth"] = [
+            {
+                "name": "sheet",
+                "mesh": {**sheet, "resolution": [7, 7]},
+                "material": {"stretch": 500, "bend": 0.015, "density": areal},
+            }
+        ]
+    return data
 
 
-def rest_height(ratio: float) -> float:
-    """[m] The plate's centre at rest: the block's top compressed under its own weight and the plate's,
-    and half the plate (the forecast model holds the plate a particle radius above the top particles'
-    centres: on the block's surface)."""
-    dx = 1.0 / CELLS
-    floor, h = FLOOR * dx, BLOCK[1]
-    w = DENSITY * dx / ratio * GRAVITY  # [Pa] the plate's weight per area
-    oedometric = E * (1 - NU) / ((1 + NU) * (1 - 2 * NU))
-    squeeze = (DENSITY * GRAVITY * h * h / 2 + w * h) / oedometric
-    return floor + h - squeeze + 0.5 * PLATE[1]
+def squeeze(setup: Setup, ratio: float) -> float:
+    """[m] How far the body's weight lowers the block's top (uniaxial: w h / E')."""
+    w = DENSITY * setup.dx / ratio * GRAVITY  # [Pa]
+    modulus = E / (1 - NU * NU) if setup.dim == 2 else E
+    return w * setup.block[1] / modulus
+
+
+class Probe:
+    """The body's height and vertical velocity, and the top layer's, in a built system."""
+
+    def __init__(self, setup: Setup, sim):
+        self.setup, self.sim = setup, sim
+        self.engine = sim.engines["dart" if setup.body == "plate" else "sheet"]
+
+    def height_velocity(self) -> tuple[float, float]:
+        if self.setup.body == "plate":
+            b = self.engine.body_states()
+            return float(b["position"][0, 1]), float(b["linear_velocity"][0, 1])
+        s = self.engine.state()
+        return float(s["x"][:, 1].mean()), float(s["v"][:, 1].mean())
+
+    def kick(self, delta: float) -> None:
+        """Add ``delta`` [m/s] to the body's vertical velocity (every free vertex of a sheet)."""
+        s = {k: np.array(v) for k, v in self.engine.state().items()}
+        if self.setup.body == "plate":
+            s["qd"][1] += delta
+        else:
+            s["v"][self.engine.free, 1] += delta
+        self.engine.set_state(s)
+
+    def surface_offset(self) -> float:
+        """[m] The body's centre above the top particles' centres at contact."""
+        if self.setup.body == "plate":
+            return 0.25 * self.setup.dx + 0.5 * self.setup.size[1]
+        return 0.0
 
 
 def settle(sim, frames: int) -> None:
@@ -103,61 +166,73 @@ def settle(sim, frames: int) -> None:
     sim.set_state(state)
 
 
-def run_plate(ratio: float, frames: int = 200, perturb_at: int = 100, delta: float = 1e-4, rest: int = 100) -> dict:
-    """The plate rows of the sweep (see the module docstring): two rollouts after ``rest`` settling frames,
-    one perturbed."""
+def block_top(setup: Setup, rest: int) -> float:
+    """[m] The settled block's top particles' mean height without a body (the closed form's reference)."""
+    from cosim.scene import parse_scene
+    from cosim.scene.build import build_system
+
+    data = scene_dict(setup, 1.0, rest)
+    data.pop("articulated", None)
+    data.pop("cloth", None)
+    sim = build_system(parse_scene(data))
+    settle(sim, rest)
+    x = sim.mpm.state()["x"]
+    return float(x[x[:, 1] > x[:, 1].max() - 0.5 * setup.dx, 1].mean())
+
+
+def run(setup: Setup, ratio: float, strong: bool = True, frames: int = 200, perturb_at: int = 100, rest: int = 100,
+        top: float | None = None, delta: float = 1e-4) -> dict:
+    """One row of the sweep (module docstring). ``top``: the settled block's top (``block_top``), computed
+    when not given."""
     from cosim.errors import SimulationError
     from cosim.scene import parse_scene
     from cosim.scene.build import build_system
 
-    sim = build_system(parse_scene(plate_scene(ratio, frames)))
-    dart = sim.engines["dart"]
+    top = block_top(setup, rest) if top is None else top
+    sim = build_system(parse_scene(scene_dict(setup, ratio, frames)))
+    for coupler in sim.mpm_couplers:
+        coupler.added_mass = strong
+    probe = Probe(setup, sim)
+    row = {"body": setup.body, "ratio": ratio, "scheme": "strong" if strong else "explicit"}
     try:
         settle(sim, rest)
     except SimulationError as err:
-        return {"body": "plate", "ratio": ratio, "outcome": f"settling: {err}", "rest_height": rest_height(ratio)}
+        return row | {"outcome": f"settling: {err}"}
     start = sim.state()
     x0 = start["mpm"]["x"]
-    beneath = np.abs(x0[:, 0] - 0.5) < 0.5 * PLATE[0]
-    top_layer = np.flatnonzero(beneath & (x0[:, 1] > x0[beneath, 1].max() - 1.0 / CELLS))
-    frame_dt = sim.frame_dt
+    under = np.all(np.abs(x0[:, [0, -1]] - 0.5) < 0.5 * setup.size[0], axis=1)
+    layer = np.flatnonzero(under & (x0[:, 1] > x0[under, 1].max() - setup.dx))
 
-    def rollout(kick: float):
-        """(plate vy, plate y, the top layer's vertical velocity (its mean height's rate), outcome)."""
+    def rollout(kick: float) -> tuple[np.ndarray, str]:
+        """(frames, 3): the body's height, its vertical velocity, the top layer's; and the outcome."""
         sim.set_state(start)
-        vy, y, under = [], [], []
-        level = x0[top_layer, 1].mean()
+        rows, level = [], x0[layer, 1].mean()
         try:
             for n in range(frames):
                 if n == perturb_at and kick:
-                    s = dart.state()
-                    s["qd"] = s["qd"].copy()
-                    s["qd"][1] += kick
-                    dart.set_state(s)
+                    probe.kick(kick)
                 sim.step()
-                b = dart.body_states()
-                vy.append(b["linear_velocity"][0, 1])
-                y.append(b["position"][0, 1])
-                now = sim.mpm.state()["x"][top_layer, 1].mean()
-                under.append((now - level) / frame_dt)
+                now = sim.mpm.state()["x"][layer, 1].mean()
+                rows.append((*probe.height_velocity(), (now - level) / sim.frame_dt))
                 level = now
         except SimulationError as err:
-            return np.array(vy), np.array(y), np.array(under), str(err)
-        return np.array(vy), np.array(y), np.array(under), "ok"
+            return np.array(rows), str(err)
+        return np.array(rows), "ok"
 
-    vy, y, under, outcome = rollout(0.0)
-    out = {"body": "plate", "ratio": ratio, "outcome": outcome, "rest_height": rest_height(ratio)}
+    base, outcome = rollout(0.0)
     if outcome != "ok":
-        return out
-    vy2, _, _, outcome2 = rollout(delta)
-    d = np.abs(vy2[perturb_at:] - vy[perturb_at:])
-    growth = d[1:] / np.maximum(d[:-1], 1e-300)
+        return row | {"outcome": outcome}
+    kicked, outcome = rollout(delta)
+    if outcome != "ok":
+        return row | {"outcome": f"perturbed: {outcome}"}
+    d = np.abs(kicked[perturb_at:, 1] - base[perturb_at:, 1])
     live = d[:-1] > 1e-9 * delta  # the differences above round-off
+    growth = d[1:][live] / d[:-1][live]
     late = slice(3 * frames // 4, frames)
-    out.update(
-        amplification=float(np.exp(np.mean(np.log(np.maximum(growth[live], 1e-300))))) if live.any() else 0.0,
-        late_rms=float(np.sqrt(np.mean((vy[late] - under[late]) ** 2))),
-        height=float(np.mean(y[late])),
-        outcome=outcome if outcome2 == "ok" else f"perturbed: {outcome2}",
-    )
-    return out
+    expected = top - squeeze(setup, ratio) + probe.surface_offset()
+    return row | {
+        "amplification": float(np.exp(np.mean(np.log(growth)))) if live.any() else 0.0,
+        "late_rms": float(np.sqrt(np.mean((base[late, 1] - base[late, 2]) ** 2))),
+        "height_error": float(np.mean(base[late, 0]) - expected),
+        "outcome": "ok",
+    }

@@ -16,8 +16,9 @@ the sheet to v^{n+1} too:
 
     (m + A^n)(v^{n+1} - v^n) = T f_cloth + J^n
 
-and that material is handed the sheet's velocity change v^{n+1} - v^n at the start of the
-next step (``cosim.couplers.handover``: each engaged particle gets its share of the change of
+and that material is handed the sheet's velocity change v^{n+1} - v^n (on the vertices that
+are not prescribed: a fixed or controlled vertex moves as told, its inertia unused) at the start
+of the next step (``cosim.couplers.handover``: each engaged particle gets its share of the change of
 the vertices under it), so it does not drag the sheet back. The momentum the sheet gave up to
 carry it, A^n (v^{n+1} - v^n), is the momentum the material receives. On the model problem
 (material of mass A_true in inelastic contact) a perturbation dies when A = A_true. So A must
@@ -77,6 +78,7 @@ class MPMClothCoupler:
         self.name = self.source = name or cloth.name
         self.max_travel = float(max_travel)  # [m] per frame: the tracing band (``ClothBoundary.max_step_travel``)
         self.added_mass = bool(added_mass)
+        self._free = np.asarray(getattr(cloth, "free", np.ones(len(cloth.state()["v"]), dtype=bool)), float)[:, None]
         self._fresh = {"tracking": None, "boundary_v": None}
         self._state = dict(self._fresh)
         self._v_b: np.ndarray | None = None
@@ -116,8 +118,8 @@ class MPMClothCoupler:
         states["substeps"] = substeps
         self._v_b = states["v"]
         handover = self.added_mass and self._state["boundary_v"] is not None
-        if handover:
-            states["handover"] = self._v_b - self._state["boundary_v"]
+        if handover:  # the free vertices' change: a prescribed vertex's motion carries no added mass
+            states["handover"] = (self._v_b - self._state["boundary_v"]) * self._free
             states["handover_from"] = self._state["boundary_v"]
         return states, ClothCouplingRecord(dt, substeps, handover)
 
@@ -155,6 +157,7 @@ class MPMClothCoupler:
         coupler's state before the step) in ``carry["before"]``."""
         g_v = grad_boundary["v"] + carry["v"]
         if record.handover:
-            g_v = g_v + grad_boundary["handover"]
-            carry["before"]["boundary_v"] = grad_boundary["handover_from"] - grad_boundary["handover"]
+            g_change = grad_boundary["handover"] * self._free
+            g_v = g_v + g_change
+            carry["before"]["boundary_v"] = grad_boundary["handover_from"] - g_change
         return {"x": grad_boundary["x"], "v": g_v}
