@@ -1,4 +1,5 @@
-"""`cosim bench coupling`: what the MPM-DART coupling costs, on pour_water and pull_door.
+"""`cosim bench coupling`: what the MPM-DART coupling costs, on pour_water and pull_door, and whether
+it holds a light body at rest on heavy material across mass ratios (``cosim.bench.mass_ratio``).
 
 Per scene, in one process (float64, as gradient runs are), after a warm-up that
 compiles every kernel:
@@ -285,10 +286,13 @@ def run_coupling_bench(out_dir: Path, quick: bool = False, repeat: int = 3, comm
             f"| {r['dim']} | {r['particles']} | {r['substeps']} x {r['macro_steps']} | {r['api_ms']:.1f} | "
             f"{r['bare_ms']:.1f} | {r['host_ms']:.2f} | {r['overhead']:+.1%} |"
         )
+    from cosim.bench.mass_ratio_report import sweep, write
+
+    lines += ["", *write(sweep(quick), out_dir)]
     header = report_header(command or bench_command("coupling"), guards_off=GUARDS_OFF)
     (out_dir / "coupling.md").write_text(header + "\n".join(lines) + "\n")
     print(header + "\n".join(lines))
-    print(f"wrote {out_dir}/coupling.csv, overhead.csv, coupling.md")
+    print(f"wrote {out_dir}/coupling.csv, overhead.csv, mass_ratio.csv, mass_ratio.png, coupling.md")
     return 0
 
 

@@ -180,8 +180,16 @@ def block_top(setup: Setup, rest: int) -> float:
     return float(x[x[:, 1] > x[:, 1].max() - 0.5 * setup.dx, 1].mean())
 
 
-def run(setup: Setup, ratio: float, strong: bool = True, frames: int = 200, perturb_at: int = 100, rest: int = 100,
-        top: float | None = None, delta: float = 1e-4) -> dict:
+def run(
+    setup: Setup,
+    ratio: float,
+    strong: bool = True,
+    frames: int = 200,
+    perturb_at: int = 100,
+    rest: int = 100,
+    top: float | None = None,
+    delta: float = 1e-4,
+) -> dict:
     """One row of the sweep (module docstring). ``top``: the settled block's top (``block_top``), computed
     when not given."""
     from cosim.errors import SimulationError

@@ -28,7 +28,6 @@ source (``RigidBoundaries``), the cloth's traced distance (``ClothBoundary``) is
 import numpy as np
 import taichi as ti
 
-from cosim.couplers.contact_rules import source_offset, surface_offset
 from cosim.couplers.sdf_field import SDFField
 from cosim.couplers.sdf_grid import SDFGrid
 from cosim.engines import field_pool
@@ -49,11 +48,10 @@ class RigidBoundaries:
     With ``added_mass`` (the MPM-DART coupler's strong coupling, ``cosim.couplers.mpm_rigid``) its
     reactions also carry "mass" (n, k, k) [kg, kg m, kg m^2], k = 3 in 2D, 6 in 3D: per body, the
     material that follows the body's twist [omega; v] (about ``pos``) over the frame, as a
-    rigid-body inertia: sum_p m_p e_p J_p^T J_p, J_p = [-[r_p]x, I] the map from the twist to the
-    velocity of the body point under particle p (r_p = x_p - pos), e_p the contact model's share
-    of p that follows it (``engagement``), at the frame's end. Its boundary states then also take
-    "handover" (n, k): each body's twist change over its last step, which the material it
-    engages gets at the next step's start (``cosim.couplers.handover``).
+    rigid-body inertia (``cosim.couplers.rigid_engagement``), and its boundary states take
+    "handover" and "handover_from" (n, k): each body's twist change over its last step and the
+    twist it changed from, which the material it engages gets at the next step's start
+    (``cosim.couplers.handover``).
     """
 
     def __init__(
@@ -74,11 +72,11 @@ class RigidBoundaries:
         self.real = np.float64 if self.pos.dtype == ti.f64 else np.float32
         self.capabilities = frozenset({"added_mass"}) if added_mass else frozenset()
         self.engagement = None  # the contact model that says how much material follows a body (forecast)
-        k = self.wdim + dim
-        self.contact_mass = field_pool.matrix(self, k, k, float, shape=(max(self.n, 1),), needs_grad=grad)
-        self.handover_v = field_pool.vector(self, k, float, shape=(max(self.n, 1),), needs_grad=grad)
-        self.handover_from = field_pool.vector(self, k, float, shape=(max(self.n, 1),), needs_grad=grad)
-        self.substeps_now = field_pool.scalar(self, ti.i32, shape=())
+        self.added = None
+        if added_mass:
+            from cosim.couplers.rigid_engagement import RigidEngagement
+
+            self.added = RigidEngagement(self, grad)
         self._substeps = 1
 
     # ------------------------------------------------------------------ what a contact model asks
@@ -128,14 +126,8 @@ class RigidBoundaries:
         arrays = [np.ascontiguousarray(states[k], dtype=self.real) for k in BOUNDARY_KEYS]
         self._substeps = len(arrays[0])
         self._write_states(*arrays, self._substeps)
-        if "added_mass" in self.capabilities:
-            self.substeps_now[None] = self._substeps
-            k = self.wdim + self.dim
-            for key, fld in (("handover", self.handover_v), ("handover_from", self.handover_from)):
-                full = np.zeros((max(self.n, 1), k), dtype=self.real)
-                if states.get(key) is not None:
-                    full[: self.n] = states[key]
-                fld.from_numpy(full)
+        if self.added is not None:
+            self.added.write(states, self._substeps)
 
     @ti.kernel
     def _write_states(
@@ -184,64 +176,21 @@ class RigidBoundaries:
         angular = np.zeros((K, self.n, self.wdim), dtype=self.real)
         self._read_reactions(impulse, angular, K)
         out = {"impulse": impulse.astype(np.float64), "angular_impulse": angular.astype(np.float64)}
-        if self.engagement is not None:
-            self.contact_mass.fill(0)
-            self._contact_mass(self.engagement.engine._slot, K - 1, K)
-            out["mass"] = self.contact_mass.to_numpy()[: self.n].astype(np.float64)
+        if self.added is not None and self.engagement is not None:
+            out["mass"] = self.added.mass(self.engagement.engine._slot, K)
         return out
-
-    @ti.kernel
-    def _contact_mass(self, src: ti.i32, s: ti.i32, K: ti.i32):
-        """sum_p m_p e_p J_p^T J_p per body (the class docstring), particles in slot ``src`` against the
-        bodies at substep s; a smooth function of both (its adjoint runs in the MPM's vjp)."""
-        e = self.engagement.engine
-        ti.loop_config(serialize=e.serial_particle_loops)
-        for p in range(e.count[None]):
-            x, v = e.x[src, p], e.v[src, p]
-            offset = surface_offset(e, ti.static(source_offset(self, self.engagement.offset)), p)
-            for b in ti.static(range(self.n)):
-                d, n = self.distance_normal(s, b, x, p)
-                vn = (v - self.contact_velocity(s, b, x, p)).dot(n)
-                share = self.engagement.engagement(self, d - offset, K, p, vn)
-                if share > 0:
-                    J = self.twist_map(x - self.pos[s, b])
-                    self.contact_mass[b] += (e.mass_of(p) * share) * (J.transpose() @ J)
 
     @ti.func
     def handover(self, s, x, v, p):
         """[m/s] The velocity change the material at x moving with v (particle p) gets from the bodies at
-        substep s: sum_b e_b J(x - pos) dv_b (``cosim.couplers.handover``), e_b engaged with the twist
-        "handover_from" the material followed."""
-        dv = ti.Vector.zero(float, self.dim)
-        e = self.engagement.engine
-        offset = surface_offset(e, ti.static(source_offset(self, self.engagement.offset)), p)
-        for b in ti.static(range(self.n)):
-            d, n = self.distance_normal(s, b, x, p)
-            J = self.twist_map(x - self.pos[s, b])
-            vn = (v - J @ self.handover_from[b]).dot(n)
-            share = self.engagement.engagement(self, d - offset, self.substeps_now[None], p, vn)
-            if share > 0:
-                dv += share * (J @ self.handover_v[b])
-        return dv
-
-    @ti.func
-    def twist_map(self, r):
-        """J (d x k): the velocity of the body point at offset r [m] from the origin is J [omega; v]."""
-        J = ti.Matrix.zero(float, self.dim, self.wdim + self.dim)
-        if ti.static(self.dim == 2):
-            J[0, 0], J[1, 0] = -r[1], r[0]
-        else:
-            J[0, 1], J[0, 2] = r[2], -r[1]  # -[r]x
-            J[1, 0], J[1, 2] = -r[2], r[0]
-            J[2, 0], J[2, 1] = r[1], -r[0]
-        for i in ti.static(range(self.dim)):
-            J[i, self.wdim + i] = 1.0
-        return J
+        substep s (``cosim.couplers.rigid_engagement``)."""
+        return self.added.handover(s, x, v, p)
 
     def zero_grad(self) -> None:
-        fields = (self.pos, self.rot, self.vel, self.omega, self.impulse, self.angular_impulse)
-        for fld in fields + (self.contact_mass, self.handover_v, self.handover_from):
+        for fld in (self.pos, self.rot, self.vel, self.omega, self.impulse, self.angular_impulse):
             fld.grad.fill(0)
+        if self.added is not None:
+            self.added.zero_grad()
 
     def seed_reaction_grads(self, grads: dict[str, np.ndarray]) -> None:
         """dL/d(reactions) of substeps 0..K-1 (Reactions layout, and "mass" with an engagement), after
@@ -252,17 +201,12 @@ class RigidBoundaries:
             full[: len(values)] = values
             fld.grad.from_numpy(full)
         g_mass = grads.get("mass")
-        if g_mass is not None and self.engagement is not None and np.any(g_mass):
-            full = np.zeros(self.contact_mass.shape + g_mass.shape[1:], dtype=self.real)
-            full[: self.n] = g_mass
-            self.contact_mass.grad.from_numpy(full)
-            K = self._substeps
-            self._contact_mass.grad(self.engagement.engine._slot, K - 1, K)
+        if g_mass is not None and self.added is not None and self.engagement is not None and np.any(g_mass):
+            self.added.seed(g_mass, self.engagement.engine._slot, self._substeps)
 
     def state_grads(self, K: int) -> dict[str, np.ndarray]:
         """dL/d(body states) of substeps 0..K-1 (BoundaryStates layout; and of "handover") after a vjp."""
         out = {k: getattr(self, k).grad.to_numpy()[:K].astype(np.float64) for k in BOUNDARY_KEYS}
-        if "added_mass" in self.capabilities:
-            out["handover"] = self.handover_v.grad.to_numpy()[: self.n].astype(np.float64)
-            out["handover_from"] = self.handover_from.grad.to_numpy()[: self.n].astype(np.float64)
+        if self.added is not None:
+            out.update(self.added.state_grads())
         return out

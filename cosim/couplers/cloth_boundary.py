@@ -338,7 +338,9 @@ class ClothBoundary:
         ti.loop_config(serialize=self.engine.serial_particle_loops)
         for p in range(self.engine.count[None]):  # k = s % slots (a statement outside the loop breaks autodiff)
             if self.tracer.face_s[k, p] >= 0:
-                vn = (self.engine.v[src, p] - self.contact_velocity(s, 0, self.frame_x[k, p], p)).dot(self.frame_n[k, p])
+                vn = (self.engine.v[src, p] - self.contact_velocity(s, 0, self.frame_x[k, p], p)).dot(
+                    self.frame_n[k, p]
+                )
                 share = self.engagement.engagement(self, self.frame_d[k, p], K, p, vn)
                 if share > 0:
                     faces, weights = self._vertex_weights(s, self.frame_x[k, p], p)
