@@ -72,9 +72,8 @@ def test_gradients_cross_the_mpm_cloth_coupling_both_ways():
 def test_gradients_through_the_added_mass_of_heavy_material():
     """The same scene under the forecast model with a jelly of 2000 kg/m^3 on the towel (material one
     cell deep weighs 400 times the towel per area): the exchange carries the material's added mass
-    (``cosim.couplers.mpm_cloth``) where the jelly follows the towel (not in the frames its surface parts
-    from it), heavier than the towel's vertices it loads; adjoint vs central differences, rel. 1e-5, both
-    ways across the coupling. Step 1e-5 of
+    (``cosim.couplers.mpm_cloth``), which is active from step 2 on and heavier than the towel's vertices
+    it loads; adjoint vs central differences, rel. 1e-5, both ways across the coupling. Step 1e-5 of
     the natural scale: at gradcheck's 1e-6 the jelly loss's difference is round-off bound (1.1e-5 off,
     the same with the added mass's adjoint left out: 1.2e-5), at 1e-5 it is 2.9e-6 off."""
     data = {**SCENE, "contact": {"model": "forecast", "friction": 0.3}}
@@ -95,7 +94,7 @@ def test_gradients_through_the_added_mass_of_heavy_material():
     coupler.forces = recording
     system.rollout()
     coupler.forces = forces
-    assert max(ratios) > 1.0  # in the frames the jelly follows the towel (not where it parts from it)
+    assert min(ratios[1:]) > 1.0
     for body, name in [("jelly", "towel.action"), ("towel", "impulse")]:
         spec = scene.loss.model_copy(update={"type": "weighted_positions", "body": body})
         objective.loss = Loss(spec, 3, 0, system.slices, system.mpm.mass, cloths=[system.engines["towel"]])

@@ -49,9 +49,8 @@ class RigidBoundaries:
     reactions also carry "mass" (n, k, k) [kg, kg m, kg m^2], k = 3 in 2D, 6 in 3D: per body, the
     material that follows the body's twist [omega; v] (about ``pos``) over the frame, as a
     rigid-body inertia (``cosim.couplers.rigid_engagement``), and its boundary states take
-    "handover" and "handover_from" (n, k): each body's twist change over its last step and the
-    twist it changed from, which the material it engages gets at the next step's start
-    (``cosim.couplers.handover``).
+    "handover" (n, k): each body's twist change over its last step, which the material it engages
+    gets at the next step's start (``cosim.couplers.handover``).
     """
 
     def __init__(
@@ -181,10 +180,10 @@ class RigidBoundaries:
         return out
 
     @ti.func
-    def handover(self, s, x, v, p):
-        """[m/s] The velocity change the material at x moving with v (particle p) gets from the bodies at
-        substep s (``cosim.couplers.rigid_engagement``)."""
-        return self.added.handover(s, x, v, p)
+    def handover(self, s, x, p):
+        """[m/s] The velocity change the material at x (particle p) gets from the bodies at substep s
+        (``cosim.couplers.rigid_engagement``)."""
+        return self.added.handover(s, x, p)
 
     def zero_grad(self) -> None:
         for fld in (self.pos, self.rot, self.vel, self.omega, self.impulse, self.angular_impulse):

@@ -107,7 +107,6 @@ class ClothBoundary:
         self.impulse = field_pool.vector(self, 3, float, shape=V, needs_grad=grad)
         self.contact_mass = field_pool.scalar(self, float, shape=V, needs_grad=grad)
         self.handover_v = field_pool.vector(self, 3, float, shape=V, needs_grad=grad)  # ``handover``
-        self.handover_from = field_pool.vector(self, 3, float, shape=V, needs_grad=grad)
         self.substeps_now = field_pool.scalar(self, ti.i32, shape=())
         self.engagement = None  # the contact model that says how much material follows the sheet (forecast)
         self._substeps = 1  # K of the step written last
@@ -294,11 +293,10 @@ class ClothBoundary:
         self.tracer.set_state(states.get("tracking"))
         self._substeps = int(states.get("substeps", 1))
         self.substeps_now[None] = self._substeps
-        for key, fld in (("handover", self.handover_v), ("handover_from", self.handover_from)):
-            if states.get(key) is None:
-                fld.fill(0)
-            else:
-                fld.from_numpy(np.asarray(states[key], dtype=self.real))
+        if states.get("handover") is None:
+            self.handover_v.fill(0)
+        else:
+            self.handover_v.from_numpy(np.asarray(states["handover"], dtype=self.real))
         if self.queries_nodes:
             self._query_nodes()
 
@@ -321,7 +319,7 @@ class ClothBoundary:
         self.tracer.trace(self.engine.slot, K, first=False, record=False)  # the last substep's motion
         self.contact_mass.fill(0)
         if self.engagement is not None:
-            self._contact_mass(self.engine._slot, K - 1, (K - 1) % self.slots, K)
+            self._contact_mass(K - 1, (K - 1) % self.slots, K)
         return {
             "impulse": self.impulse.to_numpy().astype(np.float64),
             "tracking": self.tracer.state(),
@@ -329,19 +327,15 @@ class ClothBoundary:
         }
 
     @ti.kernel
-    def _contact_mass(self, src: ti.i32, s: ti.i32, k: ti.i32, K: ti.i32):
+    def _contact_mass(self, s: ti.i32, k: ti.i32, K: ti.i32):
         """Each particle traced to the sheet in the last substep s adds its mass times the share the
         contact model moves with the sheet over the frame (``engagement``) to the vertices of its contact
         frame, with the frame's vertex weights: the added mass A (V,) [kg] of ``cosim.couplers.mpm_cloth``,
-        a smooth function of the particles' (velocities in slot ``src``, the step's end) and the sheet's
-        states (its adjoint runs in the MPM's vjp)."""
+        a smooth function of the particles' and the sheet's positions (its adjoint runs in the MPM's vjp)."""
         ti.loop_config(serialize=self.engine.serial_particle_loops)
         for p in range(self.engine.count[None]):  # k = s % slots (a statement outside the loop breaks autodiff)
             if self.tracer.face_s[k, p] >= 0:
-                vn = (self.engine.v[src, p] - self.contact_velocity(s, 0, self.frame_x[k, p], p)).dot(
-                    self.frame_n[k, p]
-                )
-                share = self.engagement.engagement(self, self.frame_d[k, p], K, p, vn)
+                share = self.engagement.engagement(self, self.frame_d[k, p], K, p)
                 if share > 0:
                     faces, weights = self._vertex_weights(s, self.frame_x[k, p], p)
                     m = self.engine.mass_of(p) * share
@@ -352,23 +346,20 @@ class ClothBoundary:
                                 self.contact_mass[tri[i]] += weights[j, i] * m
 
     @ti.func
-    def handover(self, s, x, v, p):
-        """[m/s] The velocity change particle p (moving with v) gets from the sheet at substep s: its engaged
-        share (against "handover_from", the velocities it followed) times the vertices' "handover" velocity
-        changes under its contact frame (``cosim.couplers.handover``)."""
+    def handover(self, s, x, p):
+        """[m/s] The velocity change particle p gets from the sheet at substep s: its engaged share times the
+        vertices' "handover" velocity changes under its contact frame (``cosim.couplers.handover``)."""
         dv = ti.Vector.zero(float, 3)
         k = s % self.slots
         if self.tracer.face_s[k, p] >= 0:
-            faces, weights = self._vertex_weights(s, self.frame_x[k, p], p)
-            change, followed = ti.Vector.zero(float, 3), ti.Vector.zero(float, 3)
-            for j in ti.static(range(CANDIDATES)):
-                if faces[j] >= 0:
-                    tri = self.query.faces[faces[j]]
-                    for i in ti.static(range(3)):
-                        change += weights[j, i] * self.handover_v[tri[i]]
-                        followed += weights[j, i] * self.handover_from[tri[i]]
-            vn = (v - followed).dot(self.frame_n[k, p])
-            dv = self.engagement.engagement(self, self.frame_d[k, p], self.substeps_now[None], p, vn) * change
+            share = self.engagement.engagement(self, self.frame_d[k, p], self.substeps_now[None], p)
+            if share > 0:
+                faces, weights = self._vertex_weights(s, self.frame_x[k, p], p)
+                for j in ti.static(range(CANDIDATES)):
+                    if faces[j] >= 0:
+                        tri = self.query.faces[faces[j]]
+                        for i in ti.static(range(3)):
+                            dv += (share * weights[j, i]) * self.handover_v[tri[i]]
         return dv
 
     def zero_grad(self) -> None:
@@ -376,7 +367,6 @@ class ClothBoundary:
             fld.grad.fill(0)
         self.contact_mass.grad.fill(0)
         self.handover_v.grad.fill(0)
-        self.handover_from.grad.fill(0)
 
     def seed_reaction_grads(self, grads: dict[str, np.ndarray]) -> None:
         """dL/d(impulse) (V, 3) and dL/d(mass) (V,), after ``zero_grad`` and before the substeps' adjoints:
@@ -387,7 +377,7 @@ class ClothBoundary:
         if g_mass is not None and self.engagement is not None and np.any(g_mass):
             self.contact_mass.grad.from_numpy(np.asarray(g_mass, dtype=self.real))
             K = self._substeps
-            self._contact_mass.grad(self.engine._slot, K - 1, (K - 1) % self.slots, K)
+            self._contact_mass.grad(K - 1, (K - 1) % self.slots, K)
 
     def state_grads(self, K: int) -> dict[str, np.ndarray]:
         """dL/dx, dL/dv, dL/d(handover) (V, 3) of the cloth states written for the step, after a vjp."""
@@ -395,7 +385,6 @@ class ClothBoundary:
             "x": self.query.verts.grad.to_numpy().astype(np.float64),
             "v": self.vel.grad.to_numpy().astype(np.float64),
             "handover": self.handover_v.grad.to_numpy().astype(np.float64),
-            "handover_from": self.handover_from.grad.to_numpy().astype(np.float64),
         }
 
     @ti.kernel

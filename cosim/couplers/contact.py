@@ -19,7 +19,6 @@ from cosim.couplers.contact_rules import (
     AUTO_OFFSET,
     BLEND_SOFT,
     BLEND_WHERE,
-    PARTING_SPEED,
     PROJECT_SOFT,
     STANDARD_GRAVITY,
     TAPER,
@@ -296,16 +295,16 @@ class ForecastContact:
                 e.x.grad[src, p] += g_x
 
     @ti.func
-    def engagement(self, source: ti.template(), d, K, p, vn):
+    def engagement(self, source: ti.template(), d, K, p):
         """The share of particle p's mass that follows ``source``'s velocity over a frame of K substeps when it
-        lies at gap d [m] from it and moves away from it at vn [m/s] (its velocity relative to the surface's
-        along the surface's outward normal): each substep's BC_p moves it alpha s of the way, so a change
-        of the body's velocity reaches 1 - (1 - alpha s)^K of it (0 beyond the threshold). s: the blended
-        BC's weight blend(d) where it is blended (it acts across the band); else ``touching(d)`` (the
-        speculative BC acts on a particle only as it reaches the surface: material merely near a body does
-        not follow it); times ``parting(vn)``: contact pushes, never pulls, so material leaving the surface
-        does not follow it. The added masses (``cosim.couplers.mpm_cloth``, ``mpm_rigid``) sum it and the
-        hand-over (``cosim.couplers.handover``) gives it the body's velocity change."""
+        lies at gap d [m] from it: each substep's BC_p moves it alpha s of the way, so a change of the
+        body's velocity reaches 1 - (1 - alpha s)^K of it (0 beyond the threshold). s: the blended BC's
+        weight blend(d) where it is blended (it acts across the band); else ``touching(d)`` (the
+        speculative BC acts on a particle only as it reaches the surface: material merely near a body
+        does not follow it). The added masses (``cosim.couplers.mpm_cloth``, ``mpm_rigid``) sum it and the
+        hand-over (``cosim.couplers.handover``) gives it the body's velocity change. It counts material
+        that rebounds within the frame, as the contact acted on it (leaving it out, an elastic gripper
+        bouncing off a light door left the door the impact's whole impulse)."""
         share = 0.0
         if d < self.threshold:
             blended = 0
@@ -316,15 +315,8 @@ class ForecastContact:
             weight = self.touching(d)
             if blended:
                 weight = self.blend(d)
-            share = 1.0 - ti.pow(1.0 - self.alpha * weight * self.parting(vn), K)
+            share = 1.0 - ti.pow(1.0 - self.alpha * weight, K)
         return share
-
-    @ti.func
-    def parting(self, vn):
-        """1 for material approaching or at rest on a surface (vn <= 0 [m/s]), falling to 0 at vn =
-        PARTING_SPEED by a C2 smoothstep."""
-        t = ti.min(ti.max(1.0 - vn / PARTING_SPEED, 0.0), 1.0)
-        return t * t * t * (10.0 - 15.0 * t + 6.0 * t * t)
 
     @ti.func
     def touching(self, d):

@@ -27,7 +27,6 @@ TAPER = 0.25  # forecast: the fraction of the threshold over which BC_p's weight
 TOUCH = (
     0.1  # [cells] forecast: material within this gap of a surface it is not blended with touches it (``engagement``)
 )
-PARTING_SPEED = 1e-2  # [m/s] forecast: material leaving a surface this fast no longer follows it (``engagement``)
 
 
 @ti.func

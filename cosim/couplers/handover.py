@@ -17,10 +17,9 @@ the material, stopped at the body's old velocity, separates and never drags: the
 hands the body all the material's momentum, as the explicit exchange does, and a light plate
 hit by a block, or a tortilla by its filling, was flung with more energy than it was hit with.
 
-A source that declares ``added_mass`` provides ``@ti.func handover(s, x, v, p)`` -> the velocity
-change [m/s] for particle p at x moving with v in substep s (0) and reads its "handover" (the
-body's velocity change) and "handover_from" (the velocity it changed from, which the material
-followed: the engagement leaves out material parting from it) boundary states; this
+A source that declares ``added_mass`` provides ``@ti.func handover(s, x, p)`` -> the velocity
+change [m/s] for particle p at x in substep s (0) and reads its "handover" boundary state (the
+body's velocity change); this
 particle hook (``attach_particle_hook``) scatters m_p times it at substep 0 and nothing after.
 """
 
@@ -47,10 +46,10 @@ class Handover:
         e = self.engine
         ti.loop_config(serialize=e.serial_particle_loops)
         for p in range(e.count[None]):
-            x, v = e.x[src, p], e.v[src, p]
+            x = e.x[src, p]
             dv = ti.Vector.zero(float, e.dim)
             for source in ti.static(self.sources):
-                dv += source.handover(0, x, v, p)
+                dv += source.handover(0, x, p)
             self.output[g, p] = e.mass_of(p) * dv
 
     @ti.kernel

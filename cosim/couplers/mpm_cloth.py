@@ -40,8 +40,7 @@ too): ``forces_vjp`` gives dL/dJ = g / T (g = dL/dF) and dL/dA^n = the cloth's d
 added mass), both handed to the MPM's vjp as the reaction adjoints; ``boundary_vjp`` passes
 the MPM's dL/d{x, v} of the boundary states to the cloth's state, the hand-over's adjoint
 dL/d(v^n - v_b^{n-1}) to the cloth's v^n and, negated, to this coupler's state before the
-step (which also gets dL/d(v_b^{n-1}) as the velocity the material followed), and
-dL/d(the carried v_b^n = v^n) to v^n. Tracing carries no gradient.
+step, and dL/d(the carried v_b^n = v^n) to v^n. Tracing carries no gradient.
 """
 
 from __future__ import annotations
@@ -120,7 +119,6 @@ class MPMClothCoupler:
         handover = self.added_mass and self._state["boundary_v"] is not None
         if handover:  # the free vertices' change: a prescribed vertex's motion carries no added mass
             states["handover"] = (self._v_b - self._state["boundary_v"]) * self._free
-            states["handover_from"] = self._state["boundary_v"]
         return states, ClothCouplingRecord(dt, substeps, handover)
 
     def forces(self, record: ClothCouplingRecord, reactions: dict) -> dict:
@@ -159,5 +157,5 @@ class MPMClothCoupler:
         if record.handover:
             g_change = grad_boundary["handover"] * self._free
             g_v = g_v + g_change
-            carry["before"]["boundary_v"] = grad_boundary["handover_from"] - g_change
+            carry["before"]["boundary_v"] = -g_change
         return {"x": grad_boundary["x"], "v": g_v}

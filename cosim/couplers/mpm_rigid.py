@@ -220,7 +220,6 @@ class MPMRigidCoupler:
         if record.handover:
             change = np.concatenate([bodies.w, bodies.v], axis=1) - self._boundary_v
             states["handover"] = change if self.dim == 3 else change[:, TWIST_2D]
-            states["handover_from"] = self._boundary_v if self.dim == 3 else self._boundary_v[:, TWIST_2D]
         return states, record
 
     def forces(self, record: CoupledRecord, reactions: dict) -> dict[str, np.ndarray]:
@@ -271,7 +270,7 @@ class MPMRigidCoupler:
         if record.handover:  # the hand-over V^n - V_b^{n-1}
             g_change = lift_twist(grad_boundary["handover"], self.dim)
             g_twist = g_twist + g_change
-            carry[3]["boundary_v"] = lift_twist(grad_boundary["handover_from"], self.dim) - g_change
+            carry[3]["boundary_v"] = -g_change
         g.w, g.v = g.w + g_twist[:, :3], g.v + g_twist[:, 3:]
         nb = len(self.rigid.body_names)
         full = [np.zeros((nb, 3)), np.zeros((nb, 3, 3)), np.zeros((nb, 3)), np.zeros((nb, 3))]

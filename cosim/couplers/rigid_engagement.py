@@ -56,18 +56,16 @@ class RigidEngagement:
         self.first = field_pool.vector(self, dim, float, shape=(n,), needs_grad=requires_grad)
         self.second = field_pool.matrix(self, dim, dim, float, shape=(n,), needs_grad=requires_grad)
         self.handover_v = field_pool.vector(self, self.k, float, shape=(n,), needs_grad=requires_grad)
-        self.handover_from = field_pool.vector(self, self.k, float, shape=(n,), needs_grad=requires_grad)
         self.substeps_now = field_pool.scalar(self, ti.i32, shape=())
         self.map = assembly(dim)
 
     def write(self, states: dict, K: int) -> None:
-        """The step's substep count and its "handover", "handover_from" twists (n, k) (absent: zeros)."""
+        """The step's substep count and its "handover" twists (n, k) (absent: zeros)."""
         self.substeps_now[None] = K
-        for key, fld in (("handover", self.handover_v), ("handover_from", self.handover_from)):
-            full = np.zeros((fld.shape[0], self.k), dtype=self.source.real)
-            if states.get(key) is not None:
-                full[: self.source.n] = states[key]
-            fld.from_numpy(full)
+        full = np.zeros((self.handover_v.shape[0], self.k), dtype=self.source.real)
+        if states.get("handover") is not None:
+            full[: self.source.n] = states["handover"]
+        self.handover_v.from_numpy(full)
 
     def mass(self, src: int, K: int) -> np.ndarray:
         """(n, k, k) A_b of the particles in slot ``src`` against the bodies at substep K - 1."""
@@ -102,13 +100,10 @@ class RigidEngagement:
 
     def state_grads(self) -> dict[str, np.ndarray]:
         n = self.source.n
-        return {
-            "handover": self.handover_v.grad.to_numpy()[:n].astype(np.float64),
-            "handover_from": self.handover_from.grad.to_numpy()[:n].astype(np.float64),
-        }
+        return {"handover": self.handover_v.grad.to_numpy()[:n].astype(np.float64)}
 
     def zero_grad(self) -> None:
-        for fld in (self.weight, self.first, self.second, self.handover_v, self.handover_from):
+        for fld in (self.weight, self.first, self.second, self.handover_v):
             fld.grad.fill(0)
 
     @ti.kernel
@@ -118,12 +113,10 @@ class RigidEngagement:
         e = contact.engine
         ti.loop_config(serialize=e.serial_particle_loops)
         for p in range(e.count[None]):
-            x, v = e.x[src, p], e.v[src, p]
+            x = e.x[src, p]
             offset = surface_offset(e, ti.static(source_offset(b_src, contact.offset)), p)
             for b in ti.static(range(b_src.n)):
-                d, n = b_src.distance_normal(s, b, x, p)
-                vn = (v - b_src.contact_velocity(s, b, x, p)).dot(n)
-                share = contact.engagement(b_src, d - offset, K, p, vn)
+                share = contact.engagement(b_src, b_src.distance(s, b, x, p) - offset, K, p)
                 if share > 0:
                     w = e.mass_of(p) * share
                     r = x - b_src.pos[s, b]
@@ -132,20 +125,16 @@ class RigidEngagement:
                     self.second[b] += w * r.outer_product(r)
 
     @ti.func
-    def handover(self, s, x, v, p):
-        """[m/s] sum_b e_b (dv_b + dw_b x r): the velocity change particle p at x (moving with v) gets, e_b its
-        engagement against the twist "handover_from" it followed."""
+    def handover(self, s, x, p):
+        """[m/s] sum_b e_b (dv_b + dw_b x r): the velocity change particle p at x gets, e_b its engagement."""
         b_src, contact = self.source, self.source.engagement
         e = contact.engine
         dv = ti.Vector.zero(float, b_src.dim)
         offset = surface_offset(e, ti.static(source_offset(b_src, contact.offset)), p)
         for b in ti.static(range(b_src.n)):
-            d, n = b_src.distance_normal(s, b, x, p)
-            r = x - b_src.pos[s, b]
-            vn = (v - self.twist_velocity(self.handover_from[b], r)).dot(n)
-            share = contact.engagement(b_src, d - offset, self.substeps_now[None], p, vn)
+            share = contact.engagement(b_src, b_src.distance(s, b, x, p) - offset, self.substeps_now[None], p)
             if share > 0:
-                dv += share * self.twist_velocity(self.handover_v[b], r)
+                dv += share * self.twist_velocity(self.handover_v[b], x - b_src.pos[s, b])
         return dv
 
     @ti.func
