@@ -305,16 +305,13 @@ class ForecastContact:
         hand-over (``cosim.couplers.handover``) gives it the body's velocity change. It counts material
         that rebounds within the frame, as the contact acted on it (leaving it out, an elastic gripper
         bouncing off a light door left the door the impact's whole impulse)."""
+        all_blended = ti.static(self.blend_where == "all" or traits_of(source).blend_all)
+        liquids = ti.static(not all_blended and self.blend_where == "liquids")
+        # an expression, not a reassigned local: Taichi's adjoint of a local set in a branch came out wrong
+        blended = ti.static(float(all_blended)) + ti.static(float(liquids)) * ti.cast(self.engine.is_liquid(p), float)
         share = 0.0
         if d < self.threshold:
-            blended = 0
-            if ti.static(self.blend_where == "all" or traits_of(source).blend_all):
-                blended = 1
-            elif ti.static(self.blend_where == "liquids"):
-                blended = self.engine.is_liquid(p)
-            weight = self.touching(d)
-            if blended:
-                weight = self.blend(d)
+            weight = blended * self.blend(d) + (1.0 - blended) * self.touching(d)
             share = 1.0 - ti.pow(1.0 - self.alpha * weight, K)
         return share
 
