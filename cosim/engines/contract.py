@@ -161,7 +161,10 @@ class Coupler(Protocol):
 
     def forces_vjp(self, record: Any, grad_load: dict[str, Any], grad_state: Any = None) -> tuple[Any, Any, Any]: ...
 
-    def boundary_vjp(self, record: Any, grad_boundary: BoundaryStates, carry: Any) -> State: ...
+    def boundary_vjp(self, record: Any, grad_boundary: BoundaryStates, carry: Any) -> State:
+        """dL/d(the engine's state before the step) through the boundary; a coupler with a carried state may
+        complete, in ``carry``, the dict of dL/d(its state before the step) that ``forces_vjp`` returned."""
+        ...
 
 
 CAPABILITIES = {
@@ -187,7 +190,9 @@ CAPABILITIES = {
     "substep_hooks": "before_substep(src, s) and before_substep_grad(src, s) around each MPM substep",
     "added_mass": "its reactions carry 'mass', the material that follows it over a frame (a cloth: (V,) [kg] per "
     "vertex; rigid bodies: (n, k, k) per body on its twist), from the contact model set as its engagement "
-    "(engagement(d, K), ti.func; its engine and offset); its reaction adjoint takes dL/d(mass)",
+    "(engagement(source, d, K, p), ti.func; its engine and offset); its reaction adjoint takes dL/d(mass); its "
+    "boundary states take 'handover', the body's last velocity change, which handover(s, x, p) (ti.func) hands the "
+    "engaged material (cosim.couplers.handover), and its state grads return dL/d(handover)",
     "node_queries": "a queries_nodes flag: while True it answers about grid nodes (p = -1), which the grid model asks",
 }
 
