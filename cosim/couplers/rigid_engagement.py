@@ -61,27 +61,41 @@ class RigidEngagement:
 
     def write(self, states: dict, K: int) -> None:
         """The step's substep count and its "handover" twists (n, k) (absent: zeros)."""
-        self.substeps_now[None] = K
         full = np.zeros((self.handover_v.shape[0], self.k), dtype=self.source.real)
         if states.get("handover") is not None:
             full[: self.source.n] = states["handover"]
-        self.handover_v.from_numpy(full)
+        self._write(full, K)
+
+    @ti.kernel
+    def _write(self, handover: ti.types.ndarray(), K: ti.i32):
+        self.substeps_now[None] = K  # one launch for both: a step of a small scene is a few dozen launches
+        for b in range(handover.shape[0]):
+            for i in ti.static(range(self.k)):
+                self.handover_v[b][i] = handover[b, i]
 
     def mass(self, src: int, K: int) -> np.ndarray:
         """(n, k, k) A_b of the particles in slot ``src`` against the bodies at substep K - 1."""
-        for fld in (self.weight, self.first, self.second):
-            fld.fill(0)
         self._moments(src, K - 1, K)
+        dim = self.source.dim
+        moments = np.zeros((self.weight.shape[0], 1 + dim + dim * dim), dtype=self.source.real)
+        self._take_moments(moments)
         n = self.source.n
-        moments = np.concatenate(
-            [
-                self.weight.to_numpy()[:n, None],
-                self.first.to_numpy()[:n],
-                self.second.to_numpy()[:n].reshape(n, -1),
-            ],
-            axis=1,
-        ).astype(np.float64)
-        return (moments @ self.map.T).reshape(n, self.k, self.k)
+        return (moments[:n].astype(np.float64) @ self.map.T).reshape(n, self.k, self.k)
+
+    @ti.kernel
+    def _take_moments(self, out: ti.types.ndarray()):
+        """Copy [w, c, vec(S)] per body into ``out`` and zero them for the next frame (the adjoint of their
+        sums needs no primal values)."""
+        d = ti.static(self.source.dim)
+        for b in range(out.shape[0]):
+            out[b, 0] = self.weight[b]
+            for i in ti.static(range(d)):
+                out[b, 1 + i] = self.first[b][i]
+                for j in ti.static(range(d)):
+                    out[b, 1 + d + d * i + j] = self.second[b][i, j]
+            self.weight[b] = 0.0
+            self.first[b] = ti.Vector.zero(float, d)
+            self.second[b] = ti.Matrix.zero(float, d, d)
 
     def seed(self, g_mass: np.ndarray, src: int, K: int) -> None:
         """dL/dA_b (n, k, k) -> the moments' adjoints -> the particles' and the bodies' (after ``zero_grad``)."""
