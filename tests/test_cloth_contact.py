@@ -281,7 +281,9 @@ def cloth_scene(model, positions, velocity, gravity=(0.0, -9.81, 0.0), stiffness
     engine = mpm(positions, velocity, gravity)
     verts, faces = flat_sheet(10, 0.25, 0.75)
     src = ClothBoundary(engine, verts, faces)
-    cloth = SimpleNamespace(name="cloth", state=lambda: {"x": verts, "v": np.zeros_like(verts)})
+    cloth = SimpleNamespace(
+        name="cloth", state=lambda: {"x": verts, "v": np.zeros_like(verts)}, free=np.ones(len(verts), dtype=bool)
+    )
     coupler = MPMClothCoupler(cloth)
     engine.attach_boundary(coupler.source, src)
     if model == "grid":  # band one cell: the sheet lies 0.8 cells below the nodes above it

@@ -64,9 +64,9 @@ class ClothCouplingRecord:
 
 
 class MPMClothCoupler:
-    """Joins the cloth engine ``cloth`` (anything with ``name``, ``state()`` -> {x, v} and ``masses()``) to the
-    MPM through the boundary source attached under ``name`` (default: the cloth engine's name).
-    ``added_mass=False`` exchanges explicitly (F = J / T, for comparisons)."""
+    """Joins the cloth engine ``cloth`` (anything with ``name``, ``state()`` -> {x, v}, ``free`` (V,) bool and
+    ``masses()``) to the MPM through the boundary source attached under ``name`` (default: the cloth engine's
+    name). ``added_mass=False`` exchanges explicitly (F = J / T, for comparisons)."""
 
     capabilities = frozenset({"carried_state"})
 
@@ -77,7 +77,7 @@ class MPMClothCoupler:
         self.name = self.source = name or cloth.name
         self.max_travel = float(max_travel)  # [m] per frame: the tracing band (``ClothBoundary.max_step_travel``)
         self.added_mass = bool(added_mass)
-        self._free = np.asarray(getattr(cloth, "free", np.ones(len(cloth.state()["v"]), dtype=bool)), float)[:, None]
+        self._free = np.asarray(cloth.free, dtype=np.float64)[:, None]  # the vertices no action prescribes
         self._fresh = {"tracking": None, "boundary_v": None}
         self._state = dict(self._fresh)
         self._v_b: np.ndarray | None = None
