@@ -134,7 +134,7 @@ class MPMClothCoupler:
         """From dL/d{forces, added_mass} of the cloth's step and dL/d(this coupler's state after the step):
         (dL/d{impulse, mass} of the MPM's reactions, the carry to ``boundary_vjp``, dL/d(this coupler's
         state before the step), which ``boundary_vjp`` completes)."""
-        V = len(self.cloth.state()["v"])
+        V = len(self._free)
         grad_state = grad_state or {}
         carry_v = np.zeros((V, 3))
         if grad_state.get("boundary_v") is not None:

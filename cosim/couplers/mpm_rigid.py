@@ -127,7 +127,7 @@ def average_wrench_vjp(gW: np.ndarray, J: np.ndarray, pos_k: np.ndarray, pos: np
     return gJ, gL, gpk, -gpk.sum(axis=0)
 
 
-TWIST_2D = [2, 3, 4]  # the 2D MPM's twist [omega_z, vx, vy] within DART's [omega; v]
+TWIST_2D = slice(2, 5)  # the 2D MPM's twist [omega_z, vx, vy] within DART's [omega; v]
 
 
 def lift_mass(mass: np.ndarray, dim: int) -> np.ndarray:
@@ -135,7 +135,7 @@ def lift_mass(mass: np.ndarray, dim: int) -> np.ndarray:
     if dim == 3:
         return np.array(mass, dtype=np.float64)
     out = np.zeros((len(mass), 6, 6))
-    out[:, TWIST_2D[0] : TWIST_2D[-1] + 1, TWIST_2D[0] : TWIST_2D[-1] + 1] = mass
+    out[:, TWIST_2D, TWIST_2D] = mass
     return out
 
 
@@ -150,7 +150,7 @@ def lift_twist(twist: np.ndarray, dim: int) -> np.ndarray:
 
 def lower_mass(grad: np.ndarray, dim: int) -> np.ndarray:
     """Adjoint of ``lift_mass``."""
-    return grad if dim == 3 else grad[:, TWIST_2D[0] : TWIST_2D[-1] + 1, TWIST_2D[0] : TWIST_2D[-1] + 1]
+    return grad if dim == 3 else grad[:, TWIST_2D, TWIST_2D]
 
 
 @dataclass

@@ -249,8 +249,9 @@ class RigidEngine(RigidAdjoint):
         n = self.dofs
         change = self.flat_state()[n:] - before[n:]
         self.set_flat_state(before)
-        change = rigid_added_mass.corrected_change(self, added, change)
-        self._apply(action, wrenches + rigid_added_mass.extra_wrenches(self, added, change))
+        jacobians = rigid_added_mass.body_jacobians(self, added)
+        change = rigid_added_mass.corrected_change(self, added, change, jacobians)
+        self._apply(action, wrenches + rigid_added_mass.extra_wrenches(self, added, change, jacobians))
         self.world.step()
 
     def _active_constraint(self) -> tuple[str, float] | None:

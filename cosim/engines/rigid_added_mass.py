@@ -38,13 +38,17 @@ def check_added_mass(added, bodies: int) -> np.ndarray | None:
     return added if np.any(added) else None
 
 
-def generalised(engine, added: np.ndarray) -> list[np.ndarray]:
-    """Per skeleton, A_hat = sum_b J_b^T A_b J_b (dofs x dofs) at the engine's current state."""
+def body_jacobians(engine, added: np.ndarray) -> dict[int, np.ndarray]:
+    """{body index: its world Jacobian (6 x its skeleton's dofs)} of the bodies with an added mass, at the
+    engine's current state (each a call into DART: asked once per step)."""
+    return {i: engine._body_jacobian(k, body) for i, (k, body) in enumerate(engine._bodies) if np.any(added[i])}
+
+
+def generalised(engine, added: np.ndarray, jacobians: dict[int, np.ndarray]) -> list[np.ndarray]:
+    """Per skeleton, A_hat = sum_b J_b^T A_b J_b (dofs x dofs), ``jacobians`` from ``body_jacobians``."""
     out = [np.zeros((s.getNumDofs(), s.getNumDofs())) for s in engine.skeletons]
-    for i, (k, body) in enumerate(engine._bodies):
-        if np.any(added[i]):
-            J = engine._body_jacobian(k, body)
-            out[k] += J.T @ added[i] @ J
+    for i, J in jacobians.items():
+        out[engine._bodies[i][0]] += J.T @ added[i] @ J
     return out
 
 
@@ -55,11 +59,11 @@ def inertia(engine, k: int) -> np.ndarray:
     return np.asarray(skel.getMassMatrix()) + engine.dt * np.diag(D)
 
 
-def corrected_change(engine, added: np.ndarray, dqd: np.ndarray) -> np.ndarray:
+def corrected_change(engine, added: np.ndarray, dqd: np.ndarray, jacobians: dict[int, np.ndarray]) -> np.ndarray:
     """dqd' (dofs,): the velocity change with the added mass, from DART's own change ``dqd`` over a step
     from the current state (module docstring)."""
     out = np.array(dqd, dtype=np.float64)
-    for k, A_hat in enumerate(generalised(engine, added)):
+    for k, A_hat in enumerate(generalised(engine, added, jacobians)):
         free = ~engine._kinematic[k]
         if not free.any() or not np.any(A_hat[free]):
             continue
@@ -73,13 +77,12 @@ def corrected_change(engine, added: np.ndarray, dqd: np.ndarray) -> np.ndarray:
     return out
 
 
-def extra_wrenches(engine, added: np.ndarray, change: np.ndarray) -> np.ndarray:
+def extra_wrenches(engine, added: np.ndarray, change: np.ndarray, jacobians: dict[int, np.ndarray]) -> np.ndarray:
     """(bodies, 6) [torque; force] -A_b J_b dqd' / dt: the wrenches that make DART's step follow ``change``."""
     out = np.zeros((len(engine._bodies), 6))
-    for i, (k, body) in enumerate(engine._bodies):
-        if np.any(added[i]):
-            J = engine._body_jacobian(k, body)
-            out[i] = -added[i] @ (J @ change[engine._offsets[k] : engine._offsets[k + 1]]) / engine.dt
+    for i, J in jacobians.items():
+        k = engine._bodies[i][0]
+        out[i] = -added[i] @ (J @ change[engine._offsets[k] : engine._offsets[k + 1]]) / engine.dt
     return out
 
 

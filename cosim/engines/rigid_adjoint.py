@@ -90,7 +90,10 @@ class RigidAdjoint:
         current = self.flat_state()
         self.set_flat_state(record.state)
         grad_v = self._velocity_adjoint(g, record.next_state)
-        A_hat = None if record.added is None else rigid_added_mass.generalised(self, record.added)
+        A_hat = None
+        if record.added is not None:
+            jacobians = rigid_added_mass.body_jacobians(self, record.added)
+            A_hat = rigid_added_mass.generalised(self, record.added, jacobians)
         grad_tau, grad_cmd = self._force_adjoints(grad_v, A_hat)
         grad_action = self._action_adjoint(grad_tau, grad_cmd)
         if record.clamped is not None:
@@ -123,16 +126,14 @@ class RigidAdjoint:
         """Per skeleton: adjoints of the generalised forces and of the velocity targets (at the current q),
         with the added masses ``A_hat`` (per skeleton, dofs x dofs; None: none)."""
         grad_tau, grad_cmd = [], []
-        for k, skel in enumerate(self.skeletons):
+        for k in range(len(self.skeletons)):
             gv = grad_v[self._offsets[k] : self._offsets[k + 1]]
             kin = self._kinematic[k]
             free = ~kin
-            M = np.asarray(skel.getMassMatrix()) + (0.0 if A_hat is None else A_hat[k])
-            D = np.array([skel.getDof(i).getDampingCoefficient() for i in range(skel.getNumDofs())])
+            M = rigid_added_mass.inertia(self, k) + (0.0 if A_hat is None else A_hat[k])  # M + dt D (+ A_hat)
             y = np.zeros_like(gv)
             if free.any():
-                A = M[np.ix_(free, free)] + self.dt * np.diag(D[free])
-                y[free] = np.linalg.solve(A.T, gv[free])
+                y[free] = np.linalg.solve(M[np.ix_(free, free)].T, gv[free])
             cmd = np.zeros_like(gv)
             cmd[kin] = gv[kin] - M[np.ix_(kin, free)] @ y[free]
             grad_tau.append(self.dt * y)
