@@ -6,38 +6,41 @@ from __future__ import annotations
 
 import pytest
 
-from cosim.bench.mass_ratio import SETUPS, block_top, run
+from cosim.bench.mass_ratio import SETUPS, run, settled_block
 
 FRAMES, REST = 200, 100  # as the bench: after 60 settling frames the block still rocks
 
 
 @pytest.fixture(scope="module")
-def tops() -> dict:
-    return {name: block_top(setup, REST) for name, setup in SETUPS.items()}
+def blocks() -> dict:
+    return {name: settled_block(setup, REST) for name, setup in SETUPS.items()}
 
 
-def _row(tops: dict, body: str, strong: bool) -> dict:
+def _row(blocks: dict, body: str, strong: bool) -> dict:
     setup = SETUPS[body]
-    return run(setup, 25.0, strong, frames=FRAMES, perturb_at=FRAMES // 2, rest=REST, top=tops[body])
+    return run(setup, 25.0, strong, frames=FRAMES, perturb_at=FRAMES // 2, rest=REST, block=blocks[body])
 
 
-def test_a_light_plate_rests_on_heavy_material_and_the_explicit_exchange_throws_it(tops):
+def test_a_light_plate_rests_on_heavy_material_and_the_explicit_exchange_throws_it(blocks):
     """DART plate (2D) at r = 25: a perturbation of its velocity dies (amplification <= 1 per frame), it moves
     with the block's top within 1 mm/s rms and rests within a millimetre of its closed-form height (a cell
     is 31 mm). Exchanging the reactions alone, the energy budget stops the run (the plate is flung)."""
-    row = _row(tops, "plate", True)
+    row = _row(blocks, "plate", True)
     assert row["outcome"] == "ok", row
     assert row["amplification"] <= 1.0 and row["late_rms"] <= 1e-3, row
     assert abs(row["height_error"]) <= 1e-3, row
-    row = _row(tops, "plate", False)
+    row = _row(blocks, "plate", False)
     assert "energy grew" in row["outcome"], row
 
 
-def test_a_light_sheet_rests_on_heavy_material(tops):
-    """Cloth sheet (3D) at r = 25: perturbations die, it rests within 3 mm of its closed-form height (a cell is
-    62 mm) and moves with the block's top within 2 mm/s rms (it sinks into the block slowly: the bar of
-    1 mm/s is not met yet)."""
-    row = _row(tops, "cloth", True)
+def test_a_light_sheet_rests_on_heavy_material_and_the_explicit_exchange_amplifies(blocks):
+    """Cloth sheet (3D) at r = 25: perturbations die, it moves with the block's top within 1 mm/s rms and rests
+    within a millimetre of its closed-form height (a cell is 62 mm). Exchanging the reactions alone, the sheet
+    misses the bar: it bounces on the block (its late rms several mm/s; its amplification, near 1, varies
+    with the round-off of parallel sums from run to run)."""
+    row = _row(blocks, "cloth", True)
     assert row["outcome"] == "ok", row
-    assert row["amplification"] <= 1.0 and row["late_rms"] <= 2e-3, row
-    assert abs(row["height_error"]) <= 3e-3, row
+    assert row["amplification"] <= 1.0 and row["late_rms"] <= 1e-3, row
+    assert abs(row["height_error"]) <= 1e-3, row
+    row = _row(blocks, "cloth", False)
+    assert row["outcome"] != "ok" or row["amplification"] > 1.0 or row["late_rms"] > 1e-3, row

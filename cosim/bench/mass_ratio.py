@@ -3,9 +3,9 @@
 The light body is a DART free plate (2D, a planar joint) or a cloth sheet (3D) lying on an
 elastic block of density 1000 kg/m^3 that rests on the domain's floor; r = block density x dx /
 the body's areal density [kg/m^2] (the material one cell deep against the body). Float64, forecast
-contact with friction 0.3. The block and body are first brought to rest in their weights
-(``settle``); then, per ratio and coupling scheme (the added-mass coupling, "strong", or the
-explicit exchange):
+contact with friction 0.3. The block is first brought to rest in its weight alone, the body laid on
+its top where it touches (``lay_on``), and both brought to rest (``settle``); then, per ratio and
+coupling scheme (the added-mass coupling, "strong", or the explicit exchange):
 
 - amplification: the body's vertical velocity perturbed by 1e-4 m/s at frame ``perturb_at`` of a
   second rollout; the geometric mean over the frames after it of the per-frame growth of the
@@ -141,13 +141,15 @@ class Probe:
 
 def settle(sim, frames: int) -> None:
     """Bring the block and the body to rest in their weights (dynamic relaxation): ``frames`` coupled steps;
-    whenever the material's kinetic energy has passed a peak, every velocity is set to zero. The couplers'
-    carried states start afresh after."""
+    whenever the kinetic energy of the material and the body together has passed a peak, every velocity is
+    set to zero (the material's alone misses a heavy body oscillating on it). The couplers' carried velocities
+    start afresh after; their tracing state is kept (afresh, material that a falling sheet pushed across
+    would be legal on the wrong side)."""
     peak = 0.0
     for _ in range(frames):
         sim.step()
         state = sim.state()
-        energy = float(np.sum(state["mpm"]["v"] ** 2))
+        energy = _kinetic_energy(sim, state)
         if energy >= peak:
             peak = energy
             continue
@@ -161,13 +163,37 @@ def settle(sim, frames: int) -> None:
                         engine_state[key] = np.zeros_like(engine_state[key])
         sim.set_state(state)
     state = sim.state()
-    if "couplers" in state:
-        state["couplers"] = {name: None for name in state["couplers"]}
+    for name, carried in state.get("couplers", {}).items():
+        if carried is not None and "boundary_v" in carried:
+            carried["boundary_v"] = None
     sim.set_state(state)
 
 
-def block_top(setup: Setup, rest: int) -> float:
-    """[m] The settled block's top particles' mean height without a body (the closed form's reference)."""
+def _kinetic_energy(sim, state: dict) -> float:
+    """[J] The material's kinetic energy and the light body's (a sheet's vertices, a plate's, DART's own
+    account)."""
+    total = sum(terms["kinetic"] for terms in sim.mpm.energies().values())
+    for name, engine in sim.engines.items():
+        if name == "mpm":
+            continue
+        if hasattr(engine, "skeletons"):
+            total += sum(float(skel.computeKineticEnergy()) for skel in engine.skeletons)
+        else:
+            total += 0.5 * float(np.sum(engine.masses()[:, None] * state[name]["v"] ** 2))
+    return total
+
+
+@dataclass(frozen=True)
+class SettledBlock:
+    """The block brought to rest in its weight alone (``settled_block``): its top particles' mean height [m]
+    (the closed form's reference) and the material's state, on which the body is laid."""
+
+    top: float
+    state: dict
+
+
+def settled_block(setup: Setup, rest: int) -> SettledBlock:
+    """The block settled for ``rest`` frames without a body (``settle``)."""
     from cosim.scene import parse_scene
     from cosim.scene.build import build_system
 
@@ -176,8 +202,29 @@ def block_top(setup: Setup, rest: int) -> float:
     data.pop("cloth", None)
     sim = build_system(parse_scene(data))
     settle(sim, rest)
-    x = sim.mpm.state()["x"]
-    return float(x[x[:, 1] > x[:, 1].max() - 0.5 * setup.dx, 1].mean())
+    state = sim.mpm.state()
+    x = state["x"]
+    return SettledBlock(float(x[x[:, 1] > x[:, 1].max() - 0.5 * setup.dx, 1].mean()), state)
+
+
+def lay_on(setup: Setup, sim, block: SettledBlock) -> None:
+    """Start ``sim`` from the settled block with the body laid on its top, where it touches: a plate's bottom a
+    particle radius above the highest particle's centre under it, a sheet a thousandth of a cell above it
+    (the sheet meets material at the particles' centres; the margin gives each particle a side to trace).
+    Laid higher, a light sheet hovers: the blended contact holds it like a dashpot across its band and it
+    sinks at a speed proportional to its weight (``ForecastContact``)."""
+    x = block.state["x"]
+    under = np.all(np.abs(x[:, [0, -1]] - 0.5) < 0.5 * setup.size[0], axis=1)
+    highest = float(x[under, 1].max())
+    state = sim.state()
+    state["mpm"] = {key: np.array(value) for key, value in block.state.items()}
+    name = "dart" if setup.body == "plate" else "sheet"
+    if setup.body == "plate":
+        built_at = setup.top + 0.5 * setup.size[1]  # the free joint's origin (``scene_dict``); q is relative to it
+        state[name]["q"][1] = highest + 0.25 * setup.dx + 0.5 * setup.size[1] - built_at
+    else:
+        state[name]["x"][:, 1] = highest + 1e-3 * setup.dx
+    sim.set_state(state)
 
 
 def run(
@@ -187,17 +234,18 @@ def run(
     frames: int = 200,
     perturb_at: int = 100,
     rest: int = 100,
-    top: float | None = None,
+    block: SettledBlock | None = None,
     delta: float = 1e-4,
 ) -> dict:
-    """One row of the sweep (module docstring). ``top``: the settled block's top (``block_top``), computed
-    when not given."""
+    """One row of the sweep (module docstring). ``block``: the block settled alone (``settled_block``),
+    computed when not given."""
     from cosim.errors import SimulationError
     from cosim.scene import parse_scene
     from cosim.scene.build import build_system
 
-    top = block_top(setup, rest) if top is None else top
+    block = settled_block(setup, rest) if block is None else block
     sim = build_system(parse_scene(scene_dict(setup, ratio, frames)))
+    lay_on(setup, sim, block)
     for coupler in sim.mpm_couplers:
         coupler.added_mass = strong
     probe = Probe(setup, sim)
@@ -237,7 +285,7 @@ def run(
     live = d[:-1] > 1e-9 * delta  # the differences above round-off
     growth = d[1:][live] / d[:-1][live]
     late = slice(3 * frames // 4, frames)
-    expected = top - squeeze(setup, ratio) + probe.surface_offset()
+    expected = block.top - squeeze(setup, ratio) + probe.surface_offset()
     return row | {
         "amplification": float(np.exp(np.mean(np.log(growth)))) if live.any() else 0.0,
         "late_rms": float(np.sqrt(np.mean((base[late, 1] - base[late, 2]) ** 2))),

@@ -5,7 +5,7 @@ from __future__ import annotations
 import csv
 from pathlib import Path
 
-from cosim.bench.mass_ratio import RATIOS, SETUPS, block_top, run
+from cosim.bench.mass_ratio import RATIOS, SETUPS, run, settled_block
 
 COLUMNS = ["body", "ratio", "scheme", "amplification", "late_rms", "height_error", "outcome"]
 # what every strong-coupling row must meet (the bar): perturbations die, the body rests on the
@@ -19,10 +19,10 @@ def sweep(quick: bool = False, schemes: tuple[bool, ...] = (True, False)) -> lis
     frames, rest = (120, 60) if quick else (200, 100)
     rows = []
     for setup in SETUPS.values():
-        top = block_top(setup, rest)
+        block = settled_block(setup, rest)
         for strong in schemes:
             for ratio in ratios:
-                row = run(setup, ratio, strong, frames=frames, perturb_at=frames // 2, rest=rest, top=top)
+                row = run(setup, ratio, strong, frames=frames, perturb_at=frames // 2, rest=rest, block=block)
                 row["cell"] = setup.dx
                 rows.append(row)
                 print("  mass ratio: " + ", ".join(f"{k} {_cell(row.get(k))}" for k in COLUMNS), flush=True)
