@@ -71,7 +71,7 @@ def fold(degrees: float = 7.0, actions: int = 10, radius: float = 0.25, hold: fl
 def test_make_taco_folds_over_the_filling():
     """Under the hand-made fold, the two rim groups, 0.58 m apart at rest, end less than half as far
     apart (the fold closes by 70 degrees per side in 0.4 s); no filling particle is traced inside the
-    tortilla; the filling is lifted into the fold (centre of mass up by more than two cells) and lies
+    tortilla; the 5 kg filling is lifted into the fold (centre of mass up by more than 1.5 cells) and lies
     between the two halves: every particle within the x-span of the folded tortilla and above its
     pinned line."""
     cloth = yaml.safe_load((SCENES / "make_taco.yaml").read_text())["cloth"]
@@ -85,7 +85,7 @@ def test_make_taco_folds_over_the_filling():
     assert gap < 0.5 * gap0, (gap, gap0)
     assert _inside(sim) == 0
     x0, x = sim.initial["mpm"]["x"], sim.mpm.state()["x"]
-    assert x[:, 1].mean() > x0[:, 1].mean() + 2 * sim.dx
+    assert x[:, 1].mean() > x0[:, 1].mean() + 1.5 * sim.dx
     assert x[:, 1].min() > 0.2  # above the pinned centre line
     assert x[:, 0].min() > x_cloth[:, 0].min() and x[:, 0].max() < x_cloth[:, 0].max()
 
