@@ -3,21 +3,20 @@
 Layouts (fixed at construction; skeletons in the order given, dofs in DART's skeleton order):
 - state: ``[q_0, q_1, ..., qd_0, qd_1, ...]``, all positions of all skeletons, then all velocities
   (length 2 * ``dofs``). Free joint: q = [rotation vector, translation] of the body relative to the joint
-  origin, qd = [angular, linear] velocity of the body origin (world frame for a root free joint); ball joint: q = rotation vector, qd = angular velocity in the child body frame; planar:
-  [x, y, angle about z].
+  origin, qd = [angular, linear] velocity of the body origin (world frame for a root free joint); ball joint:
+  q = rotation vector, qd = angular velocity in the child body frame; planar: [x, y, angle about z].
 - action: per skeleton, per joint in DART's joint order, the block of every joint whose control mode is not
   ``passive``: torque/velocity -> one entry per dof; wrench/twist -> 6 ([torque; force] or [angular; linear],
   world frame, about/of the body origin). ``action_layout`` lists the blocks.
-- wrenches: (len(body_names), 6) rows [torque; force] in world coordinates, torque about the BODY ORIGIN
-  (the body frame's origin, not the COM), applied for one step.
+- wrenches: (len(body_names), 6) rows [torque; force] in world coordinates, torque about the BODY ORIGIN (the
+  body frame's origin, not the COM), applied for one step.
 - bodies: ``body_names`` = "skeleton/link" for every body node, skeletons in order, DART's body order within.
 
-The step is DART's: semi-implicit Euler, implicit joint damping, enforced joint limits, optional rigid
-contact (Bullet) between skeletons with ``collide`` and with an optional static ``ground`` (``GroundSpec``;
-not a skeleton of the state: no dofs, no body name). DART resolves a contact's penetration at no more than
-1 mm/s (its contact error reduction, not settable from Python): a body that lands at speed v sinks up to
-v dt in the landing step and rises back to the surface at 1 mm/s. ``vjp`` differentiates one step
-(``cosim.engines.rigid_adjoint``: which blocks are closed form).
+The step is DART's: semi-implicit Euler, implicit joint damping, enforced joint limits, optional rigid contact
+(Bullet) between skeletons with ``collide`` and with an optional static ``ground`` (``GroundSpec``; not a
+skeleton of the state: no dofs, no body name). DART resolves a contact's penetration at no more than 1 mm/s
+(its contact error reduction, not settable from Python): a body that lands at speed v sinks up to v dt in the
+landing step and rises back to the surface at 1 mm/s. ``vjp`` differentiates one step (``rigid_adjoint``).
 """
 
 from __future__ import annotations
