@@ -170,13 +170,12 @@ def settle(sim, frames: int) -> None:
 
 
 def _kinetic_energy(sim, state: dict) -> float:
-    """[J] The material's kinetic energy and the light body's (a sheet's vertices, a plate's, DART's own
-    account)."""
+    """[J] The material's kinetic energy and the light body's (a sheet's vertices, a plate's)."""
     total = sum(terms["kinetic"] for terms in sim.mpm.energies().values())
     for name, engine in sim.engines.items():
         if name == "mpm":
             continue
-        if hasattr(engine, "skeletons"):
+        if "qd" in state[name]:  # DART's state: its skeletons' own account
             total += sum(float(skel.computeKineticEnergy()) for skel in engine.skeletons)
         else:
             total += 0.5 * float(np.sum(engine.masses()[:, None] * state[name]["v"] ** 2))
