@@ -51,6 +51,11 @@ class Setup:
         return 1.0 / self.cells
 
     @property
+    def engine(self) -> str:
+        """The light body's engine in the built scene (``scene_dict``)."""
+        return "dart" if self.body == "plate" else "sheet"
+
+    @property
     def top(self) -> float:
         """[m] The block's surface at the start (its top particles a quarter cell below it)."""
         return FLOOR * self.dx + self.block[1]
@@ -94,7 +99,7 @@ def scene_dict(setup: Setup, ratio: float, frames: int) -> dict:
         sheet = {"type": "rectangle", "center": [0.5, setup.top - 0.25 * dx, 0.5], "size": [side, side]}
         data["cloth"] = [
             {
-                "name": "sheet",
+                "name": setup.engine,
                 "mesh": {**sheet, "resolution": [7, 7]},
                 "material": {"stretch": 500, "bend": 0.015, "density": areal},
             }
@@ -114,7 +119,7 @@ class Probe:
 
     def __init__(self, setup: Setup, sim):
         self.setup, self.sim = setup, sim
-        self.engine = sim.engines["dart" if setup.body == "plate" else "sheet"]
+        self.engine = sim.engines[setup.engine]
 
     def height_velocity(self) -> tuple[float, float]:
         if self.setup.body == "plate":
@@ -217,7 +222,7 @@ def lay_on(setup: Setup, sim, block: SettledBlock) -> None:
     highest = float(x[under, 1].max())
     state = sim.state()
     state["mpm"] = {key: np.array(value) for key, value in block.state.items()}
-    name = "dart" if setup.body == "plate" else "sheet"
+    name = setup.engine
     if setup.body == "plate":
         built_at = setup.top + 0.5 * setup.size[1]  # the free joint's origin (``scene_dict``); q is relative to it
         state[name]["q"][1] = highest + 0.25 * setup.dx + 0.5 * setup.size[1] - built_at

@@ -24,9 +24,8 @@ DENSE_FILL = (0.5, 0.9)  # grid model: liquid is read as a half-space where its 
 SOLID_SOFT = 0.05  # grid model: the extra solid in a stencil is counted from 0 up, rounded over this share
 CELL_SHARE = (1.0 / 6.0, 2.0 / 3.0, 1.0 / 6.0)  # the quadratic B-spline's integral over each neighbour's cell
 TAPER = 0.25  # forecast: the fraction of the threshold over which BC_p's weight falls to 0
-TOUCH = (
-    0.1  # [cells] forecast: material within this gap of a surface it is not blended with touches it (``engagement``)
-)
+# [cells] forecast: material within this gap of a surface it is not blended with touches it (``engagement``)
+TOUCH = 0.1
 
 
 @ti.func
