@@ -31,3 +31,8 @@ class GradientCheckError(CosimError):
     """Adjoint and finite-difference gradients disagree beyond the tolerance."""
 
     exit_code = 4
+
+
+class CouplingWarning(UserWarning):
+    """The run goes on, but a coupling works outside the range where it is measured sound (a light body coupled
+    with more MPM substeps per exchange than it rests stably at)."""

@@ -11,11 +11,13 @@ run with a ``SimulationError`` naming the step, the body and the quantity, and a
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 
 from cosim.conservation import Conservation, control_work
 from cosim.engines.contract import declares
-from cosim.errors import SimulationError
+from cosim.errors import CouplingWarning, SimulationError
 
 RETRIES = 4  # auto substeps: how often a step is redone with twice the substeps
 TUNNEL_SHARE, TUNNEL_MIN = 0.01, 10  # particles through a rigid body in one step that stop the run
@@ -32,6 +34,7 @@ class StepGuard:
         self.passed_through: dict[str, int] = {}  # "body/rigid body": particles that went through it
         self.tunnel_share = TUNNEL_SHARE  # inf: count only (a benchmark measuring the contact's failures)
         self.max_cfl = 0.0
+        self._exchange_warned = False
         self.tunnels = None
         rigid = system.rigid
         if rigid is not None and rigid.sources:  # rigid bodies the MPM sees (none: links it does not)
@@ -66,7 +69,32 @@ class StepGuard:
         self._speed = speed + float(np.linalg.norm(s.gravity)) * s.frame_dt
         K = self._fixed or s.auto_substeps(self._speed)
         self._check_limit(K)
+        self._check_exchange(K)
         return K
+
+    def _check_exchange(self, K: int) -> None:
+        """Warn (once per run) when this frame takes more substeps than a strong coupling whose bodies carried
+        material in the last step is measured stable at (``exchange_limit``): the body jitters on the material."""
+        s = self.system
+        if self._exchange_warned or s.last is None:
+            return
+        for c in s.mpm_couplers:
+            if not declares(c, "exchange_limit") or K <= c.exchange_substeps:
+                continue
+            carried = s.last.outputs.get("reactions", {}).get(c.source, {}).get("mass")
+            if carried is not None and np.any(np.asarray(carried) > 0):
+                self._exchange_warned = True
+                shorter = s.frame_dt * c.exchange_substeps / K
+                warnings.warn(
+                    f"step {s.step_index}: {K} MPM substeps per {s.frame_dt:.3g} s frame, more than the "
+                    f"{c.exchange_substeps} at which coupler '{c.name}' is measured to hold a light body at rest "
+                    "on material (docs/bench/coupling.md, substeps per frame): it may jitter on the material. "
+                    f"Lower time.frame_dt to about {shorter:.2g} s (and raise steps to match) so that each "
+                    "exchange takes fewer substeps",
+                    CouplingWarning,
+                    stacklevel=2,
+                )
+                return
 
     def retry(self, health: dict, dt: float, K: int) -> int | None:
         """After the material's K substeps: stop at a NaN/inf; None when the CFL bound held, else the

@@ -1,12 +1,15 @@
 """The mass-ratio sweep's r = 25 rows (``cosim.bench.mass_ratio``): a light body resting on an elastic block 25
 times heavier per cell of depth stays at rest on it under the added-mass coupling, and is thrown off under the
-explicit exchange."""
+explicit exchange; beyond the substeps per frame at which that is measured, the runner warns."""
 
 from __future__ import annotations
 
+import warnings
+
 import pytest
 
-from cosim.bench.mass_ratio import SETUPS, run, settled_block
+from cosim.bench.mass_ratio import SETUPS, lay_on, run, scene_dict, settled_block
+from cosim.errors import CouplingWarning
 
 FRAMES, REST = 200, 100  # as the bench: after 60 settling frames the block still rocks
 
@@ -44,3 +47,24 @@ def test_a_light_sheet_rests_on_heavy_material_and_the_explicit_exchange_misses_
     assert abs(row["height_error"]) <= 1e-3, row
     row = _row(blocks, "cloth", False)
     assert row["outcome"] != "ok" or row["amplification"] > 1.0 or row["late_rms"] > 1e-3, row
+
+
+@pytest.mark.parametrize("substeps, warned", [(4, False), (8, True)])
+def test_the_runner_warns_when_a_frame_takes_more_substeps_than_the_plate_rests_stably_at(blocks, substeps, warned):
+    """The plate at r = 1 on the block: its coupler's measured limit is 4 substeps per frame
+    (``exchange_substeps``); a frame of 8 while it carries material warns once, naming time.frame_dt and a
+    frame that would take 4; a frame of 4 does not."""
+    from cosim.scene import parse_scene
+    from cosim.scene.build import build_system
+
+    setup = SETUPS["plate"]
+    sim = build_system(parse_scene(scene_dict(setup, 1.0, 5, substeps)))
+    lay_on(setup, sim, blocks["plate"])
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        for _ in range(3):
+            sim.step()
+    ours = [w for w in caught if issubclass(w.category, CouplingWarning)]
+    assert len(ours) == int(warned), [str(w.message) for w in caught]
+    if warned:
+        assert "time.frame_dt to about 0.001 s" in str(ours[0].message)

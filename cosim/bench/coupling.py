@@ -286,9 +286,9 @@ def run_coupling_bench(out_dir: Path, quick: bool = False, repeat: int = 3, comm
             f"| {r['dim']} | {r['particles']} | {r['substeps']} x {r['macro_steps']} | {r['api_ms']:.1f} | "
             f"{r['bare_ms']:.1f} | {r['host_ms']:.2f} | {r['overhead']:+.1%} |"
         )
-    from cosim.bench.mass_ratio_report import sweep, write
+    from cosim.bench.mass_ratio_report import substep_sweep, sweep, write
 
-    lines += ["", *write(sweep(quick), out_dir)]
+    lines += ["", *write(sweep(quick), substep_sweep(quick), out_dir)]
     header = report_header(command or bench_command("coupling"), guards_off=GUARDS_OFF)
     (out_dir / "coupling.md").write_text(header + "\n".join(lines) + "\n")
     print(header + "\n".join(lines))
