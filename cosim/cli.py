@@ -91,7 +91,9 @@ def cmd_run(args) -> int:
         scene, out, steps=args.steps, progress=not args.quiet, preview=not args.no_preview, save_target=args.save_target
     )
     print(
-        f"{scene.name}: {m['steps']} steps, {m['substeps_total']} substeps, {m['particles']} particles, "
+        f"{scene.name}: {m['steps']} steps, {m['substeps_total']} substeps"
+        + (f" in {m['exchanges_per_step']} exchanges per step" if m["exchanges_per_step"] > 1 else "")
+        + f", {m['particles']} particles, "
         f"{m['wall_time_s']:.2f} s ({m['particle_substeps_per_s'] / 1e6:.2f} M particle-substeps/s), "
         f"max CFL {m['max_cfl']:.3f}"
     )
@@ -139,13 +141,19 @@ def cmd_gradcheck(args) -> int:
     params = obj.initial_params()
     names = select_params(obj, scene, "gradient")
     print(
-        f"gradcheck {scene.name}: {steps} steps x {sim.grad_substeps} substeps, {scene.precision}, loss {scene.loss.type}"
+        f"gradcheck {scene.name}: {steps} steps x {_exchanges(sim)}{sim.grad_substeps} substeps, {scene.precision}, "
+        f"loss {scene.loss.type}"
     )
     print(obj.memory_estimate().describe(), flush=True)
     tolerance = args.tolerance or scene.gradient.tolerance
     directions = args.directions or scene.gradient.directions
     results = check_gradients(obj.evaluate, params, names, obj.natural_scales(), directions, tolerance=tolerance)
     return report_gradcheck(results, tolerance, steps)
+
+
+def _exchanges(sim) -> str:
+    """ "M exchanges x " where a light body's coupling makes several per macro step, else nothing."""
+    return f"{sim.exchanges} exchanges x " if sim.exchanges > 1 else ""
 
 
 def cmd_optimize(args) -> int:

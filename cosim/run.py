@@ -82,6 +82,7 @@ def run_scene(
         "frame_dt": sim.frame_dt,
         "substeps_total": int(sum(substeps)),
         "substeps_per_step": {"min": int(min(substeps)), "max": int(max(substeps))},
+        "exchanges_per_step": sim.exchanges,  # > 1 where a light body's coupling splits the frame
         "particles": int(sim.mpm.n_particles),
         "bodies": {b.name: {"material": b.material, "particles": b.n} for b in sim.mpm.bodies},
         "max_cfl": sim.max_cfl,

@@ -24,8 +24,8 @@ TUNNEL_SHARE, TUNNEL_MIN = 0.01, 10  # particles through a rigid body in one ste
 
 
 class StepGuard:
-    """The guards of ``system`` (a ``CoupledSystem``); ``begin_step`` / ``substeps`` / ``retry`` /
-    ``after_material`` / ``end_step`` in that order, once per macro step."""
+    """The guards of ``system`` (a ``CoupledSystem``): ``begin_step``, then per exchange ``begin_exchange`` /
+    ``substeps`` / ``retry`` / ``after_material`` / ``end_exchange``, then ``end_step``, once per macro step."""
 
     def __init__(self, system):
         self.system = system
@@ -48,10 +48,14 @@ class StepGuard:
 
     # ------------------------------------------------------------ around the exchange
     def begin_step(self) -> None:
-        """Before anything moves: the energy budget's start (not in a replay) and the rigid poses."""
+        """Before anything moves in a macro step: the energy budget's start (not in a replay)."""
+        self._tracked = self.conservation.begin_step(self.system.step_index)
+        self._exchanges_done = 0
+
+    def begin_exchange(self) -> None:
+        """Before each exchange of the macro step: the rigid poses it starts from."""
         s = self.system
-        self._tracked = self.conservation.begin_step(s.step_index)
-        self._poses = s.rigid.poses() if self.tunnels is not None else None  # where the bodies start the step
+        self._poses = s.rigid.poses() if self.tunnels is not None else None  # where the bodies start the exchange
         if self.tunnels is not None:
             self.tunnels.begin()
         self._attempt, self._cfl = 0, 0.0
@@ -66,15 +70,17 @@ class StepGuard:
             self._check_fixed_substeps(self._fixed)
         else:
             speed = max(speed, s.boundary_speed())  # a fixed count does not depend on it
-        self._speed = speed + float(np.linalg.norm(s.gravity)) * s.frame_dt
+        self._speed = speed + float(np.linalg.norm(s.gravity)) * s.exchange_dt
         K = self._fixed or s.auto_substeps(self._speed)
         self._check_limit(K)
         self._check_exchange(K)
         return K
 
     def _check_exchange(self, K: int) -> None:
-        """Warn (once per run) when this frame takes more substeps than a strong coupling whose bodies carried
-        material in the last step is measured stable at (``exchange_limit``): the body jitters on the material."""
+        """Warn (once per run) when an exchange takes more substeps than a strong coupling whose bodies carried
+        material in the last step is measured stable at (``exchange_limit``): the body jitters on the material.
+        The exchanges per frame are chosen at the build from the first frame's substeps; faster motion since
+        can need more."""
         s = self.system
         if self._exchange_warned or s.last is None:
             return
@@ -86,11 +92,11 @@ class StepGuard:
                 self._exchange_warned = True
                 shorter = s.frame_dt * c.exchange_substeps / K
                 warnings.warn(
-                    f"step {s.step_index}: {K} MPM substeps per {s.frame_dt:.3g} s frame, more than the "
-                    f"{c.exchange_substeps} at which coupler '{c.name}' is measured to hold a light body at rest "
-                    "on material (docs/bench/coupling.md, substeps per frame): it may jitter on the material. "
-                    f"Lower time.frame_dt to about {shorter:.2g} s (and raise steps to match) so that each "
-                    "exchange takes fewer substeps",
+                    f"step {s.step_index}: {K} MPM substeps in one exchange ({s.exchanges} per {s.frame_dt:.3g} s "
+                    f"frame, chosen from the first frame), more than the {c.exchange_substeps} at which coupler "
+                    f"'{c.name}' is measured to hold a light body at rest on material (docs/bench/coupling.md, "
+                    f"substeps per frame): it may jitter on the material. Lower time.frame_dt to about "
+                    f"{shorter:.2g} s (and raise steps to match) so that each exchange takes fewer substeps",
                     CouplingWarning,
                     stacklevel=2,
                 )
@@ -137,10 +143,10 @@ class StepGuard:
         if mpm_record.impulse is not None:
             cons.add_work(control_work(mpm_record.impulse, mpm_record.state["v"], s.mpm.mass))
 
-    def end_step(self, engine_records: dict, coupler_records: dict) -> None:
-        """After every engine stepped: the energy budget of the whole system (with the work the engines'
-        prescribed parts and the bodies outside the budget did on them), their points within the grid,
-        particles through rigid bodies."""
+    def end_exchange(self, engine_records: dict, coupler_records: dict) -> None:
+        """After every engine stepped in an exchange: the work the engines' prescribed parts and the bodies
+        outside the budget did on them; on the last exchange of the macro step the energy budget of the
+        whole system; their points within the grid, particles through rigid bodies."""
         s = self.system
         if self._tracked:
             cons = self.conservation
@@ -148,12 +154,18 @@ class StepGuard:
                 if declares(e, "energy"):
                     cons.add_work(e.external_work(engine_records[name]))
                 for c in s.engine_couplers[name]:
-                    cons.add_work(c.external_work(coupler_records[c.name], s.frame_dt))
-            cons.end_step(s.step_index)
+                    cons.add_work(c.external_work(coupler_records[c.name], s.exchange_dt))
+            self._exchanges_done += 1
+            if self._exchanges_done == s.exchanges:
+                cons.end_step(s.step_index)
         self._check_engine_domain()
         if self.tunnels is not None and self._tracked:  # the bodies have moved too: their poses now end the step
             self._check_tunnelling(self._poses)
         self.max_cfl = max(self.max_cfl, self._cfl)
+
+    def end_step(self) -> None:
+        """After the macro step's last exchange (its checks ran in ``end_exchange``)."""
+        self._exchanges_done = 0
 
     # ------------------------------------------------------------ the checks
     def _check_limit(self, K: int) -> None:
@@ -170,7 +182,7 @@ class StepGuard:
         (an optimisation, a gradient check) can move the stability bound dx / c past it."""
         s = self.system
         c, body = s.mpm.wave_speed()
-        dt = s.frame_dt / K
+        dt = s.exchange_dt / K
         if dt * c > s.dx:
             raise SimulationError(
                 f"step {s.step_index}: {K} fixed substeps give dt = {dt:.3g} s, above the stability bound "

@@ -40,3 +40,45 @@ class StepRecord:
     def keep_checkpoint(self, state: dict[str, np.ndarray] | None) -> None:
         """Hold the MPM state before the step (in the engine's precision), or release it (None)."""
         self.mpm.keep_checkpoint(state)
+
+    @property
+    def exchanges(self) -> list[StepRecord]:
+        """The exchanges of the macro step: this one."""
+        return [self]
+
+
+@dataclass
+class FrameRecord:
+    """A macro step of several exchanges (``Stepping.exchanges``): their records in order. Reads as its
+    exchanges together: the checkpoint before the first, the substeps of all, the outputs of the last."""
+
+    subs: list[StepRecord]
+
+    @property
+    def exchanges(self) -> list[StepRecord]:
+        return self.subs
+
+    @property
+    def time(self) -> float:
+        return self.subs[0].time
+
+    @property
+    def substeps(self) -> int:
+        return sum(s.substeps for s in self.subs)
+
+    @property
+    def outputs(self) -> dict[str, Any]:
+        return self.subs[-1].outputs
+
+    @property
+    def nbytes(self) -> int:
+        return sum(s.nbytes for s in self.subs)
+
+    @property
+    def checkpoint(self) -> dict[str, np.ndarray] | None:
+        return self.subs[0].checkpoint
+
+    def keep_checkpoint(self, state: dict[str, np.ndarray] | None) -> None:
+        """Hold the MPM state before the first exchange (and each later one's own), or release them all (None)."""
+        for i, s in enumerate(self.subs):
+            s.keep_checkpoint(None if state is None else state if i == 0 else s.checkpoint)

@@ -31,7 +31,7 @@ import numpy as np
 
 from cosim.engines.contract import add_loads, add_states, declares
 from cosim.step_guard import StepGuard
-from cosim.step_record import StepRecord
+from cosim.step_record import FrameRecord, StepRecord
 
 
 @dataclass
@@ -44,6 +44,7 @@ class Stepping:
     fixed: int
     grad_substeps: int
     requires_grad: bool
+    exchanges: int = 1  # exchanges per macro step: each engine steps frame_dt / exchanges between two
 
 
 @dataclass
@@ -102,7 +103,9 @@ class CoupledSystem:
         self.controls = list(controls or [])
         self.plans = dict(plans or {})
         self.slices = mpm.body_slices()
-        self.frame_dt = stepping.frame_dt
+        self.frame_dt = stepping.frame_dt  # [s] a macro step: actions, losses and outputs count these
+        self.exchanges = stepping.exchanges
+        self.exchange_dt = stepping.frame_dt / stepping.exchanges  # [s] what each engine steps between exchanges
         self.dx = mpm.dx
         self.grad_substeps = stepping.grad_substeps
         self.ctrl_index = (
@@ -182,15 +185,28 @@ class CoupledSystem:
         return seq[plan.segment(n, len(seq))]
 
     # ------------------------------------------------------------ forward
-    def step(self, impulse: np.ndarray | None = None, actions: dict[str, np.ndarray] | None = None) -> StepRecord:
-        """One macro step: couplers' boundaries, the MPM's K substeps, couplers' forces, every engine's step,
-        inside the runner's guards (``cosim.step_guard``). ``impulse`` (N, d) [N s]; ``actions`` {engine:
-        this step's action} (default: the scene's sequences)."""
-        guard, t0 = self.guard, self.step_index * self.frame_dt
-        guard.begin_step()
+    def step(self, impulse: np.ndarray | None = None, actions: dict[str, np.ndarray] | None = None):
+        """One macro step: ``exchanges`` exchanges (one unless a light body's coupler needs more, ``Stepping``),
+        each the couplers' boundaries, the MPM's K substeps, the couplers' forces and every engine's step, inside
+        the runner's guards (``cosim.step_guard``). ``impulse`` (N, d) [N s] (shared evenly by the exchanges);
+        ``actions`` {engine: this step's action} (default: the scene's sequences). Returns the ``StepRecord``
+        (a ``FrameRecord`` of them with several exchanges)."""
+        self.guard.begin_step()
+        share = impulse if impulse is None or self.exchanges == 1 else impulse / self.exchanges
+        subs = [self._exchange(m, share, actions) for m in range(self.exchanges)]
+        self.guard.end_step()
+        self.step_index += 1
+        self.last = subs[0] if len(subs) == 1 else FrameRecord(subs)
+        return self.last
+
+    def _exchange(self, m: int, impulse: np.ndarray | None, actions: dict | None) -> StepRecord:
+        """Exchange m of the macro step: boundaries, the MPM's substeps (redone with more while they break the
+        CFL bound), reactions, every engine's step of ``exchange_dt``."""
+        guard, t0 = self.guard, self.step_index * self.frame_dt + m * self.exchange_dt
+        guard.begin_exchange()
         K = guard.substeps()
         while True:  # the guard doubles K while a step breaks the CFL bound (auto substeps)
-            dt = self.frame_dt / K
+            dt = self.exchange_dt / K
             with self._timed("couplers"):
                 exchange = {c.name: c.boundary(dt, K) for c in self.mpm_couplers}  # engine states -> boundaries
             boundaries = {c.source: exchange[c.name][0] for c in self.mpm_couplers}
@@ -207,10 +223,8 @@ class CoupledSystem:
         with self._timed("couplers"):  # reactions -> each engine's load (forces, added mass)
             loads = self._loads(coupler_records, outputs["reactions"])
         engine_records = self._step_engines(loads, actions, coupler_records)
-        guard.end_step(engine_records, coupler_records)
-        self.step_index += 1
-        self.last = StepRecord(t0, mpm_record, engine_records, coupler_records, {"reactions": outputs["reactions"]})
-        return self.last
+        guard.end_exchange(engine_records, coupler_records)
+        return StepRecord(t0, mpm_record, engine_records, coupler_records, {"reactions": outputs["reactions"]})
 
     def _loads(self, coupler_records: dict, reactions: dict) -> dict[str, dict]:
         """{engine: the sum of its MPM couplers' loads ({"forces", "added_mass"})} from the MPM's reactions."""
@@ -227,7 +241,7 @@ class CoupledSystem:
             act = actions[name] if actions is not None and name in actions else self.action(name, self.step_index)
             couplers = self.engine_couplers[name]
             with self._timed("couplers"):
-                exchange = {c.name: c.boundary(self.frame_dt, 1) for c in couplers}
+                exchange = {c.name: c.boundary(self.exchange_dt, 1) for c in couplers}
             inputs = {"action": act, **loads.get(name, {})}
             if couplers:
                 inputs["boundaries"] = {c.source: exchange[c.name][0] for c in couplers}
@@ -270,12 +284,34 @@ class CoupledSystem:
         """Recompute the MPM checkpoints of ``records[1:]`` from that of ``records[0]`` by replaying the MPM
         with the steps' recorded boundaries and impulses (the manipulators need no replay: their records
         hold their states). The tape's ``checkpoint_every`` > 1 relies on it."""
-        after = self.mpm.replay(records[0].mpm.state, [r.mpm for r in records[:-1]])
-        for record, state in zip(records[1:], after):
+        subs = [sub for r in records for sub in r.exchanges]
+        after = self.mpm.replay(subs[0].mpm.state, [r.mpm for r in subs[:-1]])
+        for record, state in zip(subs[1:], after):
             record.keep_checkpoint(state)
 
-    def vjp(self, record: StepRecord, grad: dict[str, dict[str, np.ndarray]]) -> dict:
-        """Vector-Jacobian product of one recorded macro step (the paper's backward equations).
+    def vjp(self, record: StepRecord | FrameRecord, grad: dict[str, dict[str, np.ndarray]]) -> dict:
+        """Vector-Jacobian product of one recorded macro step: its exchanges' (``_exchange_vjp``) from the last
+        to the first, their action and material gradients summed, the impulse's averaged (each exchange got
+        its share)."""
+        if isinstance(record, StepRecord):
+            return self._exchange_vjp(record, grad)
+        outs = []
+        for sub in reversed(record.subs):
+            outs.append(self._exchange_vjp(sub, grad))
+            grad = outs[-1]["state"]
+        impulses = [o["impulse"] for o in outs if o.get("impulse") is not None]
+        return {
+            "state": grad,
+            "action": _summed([o["action"] for o in outs]),
+            "impulse": sum(impulses) / len(outs) if impulses else None,
+            "material": {
+                name: _summed([o["material"].get(name, {}) for o in outs])
+                for name in {*outs[0]["material"]} | {n for o in outs for n in o["material"]}
+            },
+        }
+
+    def _exchange_vjp(self, record: StepRecord, grad: dict[str, dict[str, np.ndarray]]) -> dict:
+        """Vector-Jacobian product of one recorded exchange (the paper's backward equations).
 
         ``grad``: dL/d(state after) per engine name. The manipulators in reverse order: each vjp gives
         dL/ds_e (own dynamics), dL/da_e and dL/dF_e, and, for an engine that is a coupler's medium (a
@@ -327,20 +363,32 @@ class CoupledSystem:
 
     # ------------------------------------------------------------ time stepping and checks
     def auto_substeps(self, speed: float) -> int:
-        """Substeps so that (|v| + c) dt / dx <= cfl, c the fastest elastic wave, and dt stays under the
+        """Substeps per exchange so that (|v| + c) dt / dx <= cfl, c the fastest elastic wave, and dt stays under the
         explicit viscous bound rho dx^2 / (2 d eta) of the most viscous liquid."""
         bound = min(self.stepping.cfl * self.dx / (speed + self.mpm.wave_speed()[0]), self.mpm.viscous_time_step()[0])
-        return max(1, math.ceil(self.frame_dt / bound - 1e-9))
+        return max(1, math.ceil(self.exchange_dt / bound - 1e-9))
 
     def boundary_speed(self) -> float:
-        """[m/s] The fastest boundary surface (rigid bodies, cloth vertices) over the next frame: the
+        """[m/s] The fastest boundary surface (rigid bodies, cloth vertices) over the next exchange: the
         substep count keeps it under the CFL fraction of a cell per substep, as it does the particles."""
-        speeds = [self.rigid.surface_speed(self.frame_dt)] if self.rigid is not None else []
-        speeds += [e.surface_speed(self.frame_dt) for e in self.engines.values() if declares(e, "surface_speed")]
+        speeds = [self.rigid.surface_speed(self.exchange_dt)] if self.rigid is not None else []
+        speeds += [e.surface_speed(self.exchange_dt) for e in self.engines.values() if declares(e, "surface_speed")]
         return max(speeds, default=0.0)
 
     def _timed(self, key: str):
         return _Stopwatch(self.timings, key)
+
+
+def _summed(parts: list[dict]) -> dict:
+    """{key: the sum of the parts' values} over the keys any part has (None values skipped; None if all are)."""
+    out = {}
+    for part in parts:
+        for key, value in part.items():
+            if value is not None:
+                out[key] = value if out.get(key) is None else out[key] + value
+            else:
+                out.setdefault(key, None)
+    return out
 
 
 class _Stopwatch:

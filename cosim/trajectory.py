@@ -125,7 +125,7 @@ def step_reactions(sim) -> np.ndarray:
     from cosim.couplers.mpm_rigid import average_wrench, lift_reactions
     from cosim.engines.kinematic import kinematic_states
 
-    rigid, last = sim.rigid, sim.last
+    rigid, last = sim.rigid, sim.last.exchanges[-1]  # the last exchange of the macro step
     rows = []
     if rigid.kinematic is not None:
         source = next(c.source for c in sim.couplers if c.engine == rigid.kinematic.name)

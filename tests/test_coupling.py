@@ -215,9 +215,10 @@ def test_a_hinged_door_turns_by_the_angular_impulse_it_receives(model):
     assert inertia * qd == pytest.approx(spin0 - block_spin(), rel=0.02)
 
 
-def gradient_scene(model, loss):
+def gradient_scene(model, loss, substeps: int = 4):
     """A soft block pushed by impulses and a light free box pushed by DART generalised forces
-    (x, y, angle) toward each other: 10 macro steps with contact in most of them."""
+    (x, y, angle) toward each other: 10 macro steps with contact in most of them; ``substeps`` per frame
+    (above 4 the box's coupler makes each frame several exchanges)."""
     box = free_box("box", [0.615, 0.52], [0.15, 0.15], 100.0, qd0=[-1.0, 0.0, 0.0])
     box["controls"] = {"box": "torque"}
     return coupled_scene(
@@ -226,7 +227,7 @@ def gradient_scene(model, loss):
         model,
         cells=32,
         steps=10,
-        substeps=4,
+        substeps=substeps,
         articulated={"actions": {"hold": 2, "initial": [-20.0, 5.0, 0.5]}},
         controls=[{"body": "ball", "impulse": [0.0, 0.0]}],
         contact={"friction": 0.2},
@@ -258,22 +259,44 @@ def test_gradients_from_particle_impulses_to_a_joint(model):
         assert abs(r.adjoint) > 0 and r.relative_error < 1e-5, r
 
 
-def test_keeping_every_kth_checkpoint_gives_the_same_gradients():
+@pytest.mark.parametrize("substeps, exchanges, per_exchange", [(6, 2, 3), (16, 4, 4)])
+def test_gradients_through_several_exchanges_per_frame(substeps, exchanges, per_exchange):
+    """More substeps per frame than the light box's coupler rests a body at (4 per exchange): each macro step
+    is several exchanges, each engine steps their share of the frame, the impulses are shared; a loss on the
+    box's joint w.r.t. the impulses, the box's actions and the block's initial velocities, adjoint vs central
+    differences, 1e-5. (At 8 substeps, two exchanges of 4, a contact switch lies so near the trajectory that
+    differences along one action direction converge to the adjoint only as the step shrinks: 7e-2 off at a
+    relative step of 1e-4, 2e-3 at 1e-5, 6e-6 at 1e-7.)"""
+    loss = {"type": "joint_target", "skeleton": "box", "joint": "box", "target": [0.1, 0.0, 0.0]}
+    obj = Objective(build_system(gradient_scene("forecast", loss, substeps=substeps), requires_grad=True))
+    assert obj.system.exchanges == exchanges and obj.system.grad_substeps == per_exchange
+    names = ["impulse", "action", "v0"]
+    results = check_gradients(obj.evaluate, obj.initial_params(), names, obj.natural_scales(), 2)
+    for r in results:
+        assert abs(r.adjoint) > 0 and r.relative_error < 1e-5, r
+
+
+@pytest.mark.parametrize("substeps, exchanges", [(4, 1), (8, 2)])
+def test_keeping_every_kth_checkpoint_gives_the_same_gradients(substeps, exchanges):
     """The tape keeps the MPM state of every 4th of 7 coupled steps (forecast contact) and the backward
     pass replays the MPM from them with the recorded boundaries: the gradients equal those of keeping
-    every step's state to round-off, and the tape holds 2 MPM states instead of 7."""
+    every step's state to round-off, and the tape holds 2 MPM states instead of 7 (per exchange, with
+    several per frame)."""
     loss = {"type": "joint_target", "skeleton": "box", "joint": "box", "target": [0.1, 0.0, 0.0]}
-    obj = Objective(build_system(gradient_scene("forecast", loss), requires_grad=True, steps=7))
+    scene = gradient_scene("forecast", loss, substeps=substeps)
+    obj = Objective(build_system(scene, requires_grad=True, steps=7))
+    assert obj.system.exchanges == exchanges
     params = obj.initial_params()
     value_every, grads_every = obj.evaluate(params, grad=True)
-    held_every = sum(r.checkpoint is not None for r in obj.tape.records)
+    held_every = sum(r.checkpoint is not None for r in obj.tape.records)  # per macro step
     obj.tape = Tape(checkpoint_every=4)
     value, grads = obj.evaluate(params, grad=True)
     assert value == value_every
     for key in ("impulse", "action", "v0", "x0"):
         scale = np.abs(grads_every[key]).max()
         assert scale > 0 and np.abs(grads[key] - grads_every[key]).max() <= 1e-12 * scale, key
-    assert (held_every, sum(r.checkpoint is not None for r in obj.tape.records)) == (7, 2)
+    held = sum(sub.checkpoint is not None for r in obj.tape.records for sub in r.exchanges)
+    assert (held_every, held) == (7, 2 * exchanges)
 
 
 def test_an_uncoupled_link_costs_nothing_in_the_mpm():

@@ -49,22 +49,35 @@ def test_a_light_sheet_rests_on_heavy_material_and_the_explicit_exchange_misses_
     assert row["outcome"] != "ok" or row["amplification"] > 1.0 or row["late_rms"] > 1e-3, row
 
 
-@pytest.mark.parametrize("substeps, warned", [(4, False), (8, True)])
-def test_the_runner_warns_when_a_frame_takes_more_substeps_than_the_plate_rests_stably_at(blocks, substeps, warned):
-    """The plate at r = 1 on the block: its coupler's measured limit is 4 substeps per frame
-    (``exchange_substeps``); a frame of 8 while it carries material warns once, naming time.frame_dt and a
-    frame that would take 4; a frame of 4 does not."""
+def test_a_frame_of_many_substeps_is_split_into_exchanges_and_the_plate_rests(blocks):
+    """The plate at r = 1 with 8 substeps per 2 ms frame: its coupler rests a body at up to 4 per exchange
+    (``exchange_substeps``), so each frame is two exchanges of 4 (once per frame, the plate jitters on the block
+    at about 2 mm/s rms), and it meets the bar: perturbations die, within 1 mm/s rms of the block's top and a
+    millimetre of its closed-form height."""
+    row = run(SETUPS["plate"], 1.0, True, FRAMES, FRAMES // 2, REST, blocks["plate"], substeps=8)
+    assert row["outcome"] == "ok", row
+    assert row["amplification"] <= 1.0 and row["late_rms"] <= 1e-3, row
+    assert abs(row["height_error"]) <= 1e-3, row
+
+
+def test_the_runner_warns_when_an_exchange_takes_more_substeps_than_the_plate_rests_stably_at(blocks):
+    """The exchanges per frame are chosen from the first frame (here one: auto takes 4); with the block made
+    four times stiffer after the build (an optimisation may), auto substeps double, and the runner warns once,
+    naming time.frame_dt and a frame that would take 4 per exchange."""
     from cosim.scene import parse_scene
     from cosim.scene.build import build_system
 
     setup = SETUPS["plate"]
-    sim = build_system(parse_scene(scene_dict(setup, 1.0, 5, substeps)))
+    sim = build_system(parse_scene(scene_dict(setup, 1.0, 5)))
     lay_on(setup, sim, blocks["plate"])
+    assert sim.exchanges == 1
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
+        sim.step()
+        sim.step()
+        assert not [w for w in caught if issubclass(w.category, CouplingWarning)]
+        sim.mpm.set_parameters({"E": 4.0 * sim.mpm.material()["E"]})
         for _ in range(3):
             sim.step()
-    ours = [w for w in caught if issubclass(w.category, CouplingWarning)]
-    assert len(ours) == int(warned), [str(w.message) for w in caught]
-    if warned:
-        assert "time.frame_dt to about 0.001 s" in str(ours[0].message)
+    ours = [str(w.message) for w in caught if issubclass(w.category, CouplingWarning)]
+    assert len(ours) == 1 and "Lower time.frame_dt to about 0.001 s" in ours[0], ours

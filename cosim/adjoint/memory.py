@@ -23,7 +23,7 @@ class MemoryEstimate:
 
     steps: int
     checkpoint_every: int
-    checkpoint_bytes: int  # one MPM state in the engine's precision
+    checkpoint_bytes: int  # a macro step's MPM states (one per exchange) in the engine's precision
     held_checkpoints: int  # the most the tape holds at once (forward end or backward segment)
     per_step_bytes: int  # what every record holds whatever k: the control impulse field
     running_bytes: int  # the running loss terms' gradients, one per state
@@ -59,8 +59,9 @@ def estimate_memory(system, steps: int, checkpoint_every: int = 1, running_loss:
     mpm = system.mpm
     n, d = mpm.n_particles, mpm.dim
     itemsize = np.dtype(mpm.real).itemsize
-    state = n * (2 * d + 2 * d * d) * itemsize  # x, v, C, F
-    impulse = n * d * 8 if mpm.control is not None else 0  # the full (N, d) field, float64
+    per_exchange = n * (2 * d + 2 * d * d) * itemsize  # x, v, C, F
+    state = per_exchange * system.exchanges  # a macro step's checkpoints: one before each of its exchanges
+    impulse = n * d * 8 * system.exchanges if mpm.control is not None else 0  # the (N, d) field per exchange, float64
     running = (steps + 1) * n * 2 * d * 8 if running_loss else 0  # dL/dx and dL/dv per state, at most
     objects = [mpm, *mpm.grid_hooks, *mpm.particle_hooks, *mpm.boundaries.values(), *system.engines.values()]
     return MemoryEstimate(

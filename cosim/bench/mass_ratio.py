@@ -20,11 +20,13 @@ coupling scheme (the added-mass coupling, "strong", or the explicit exchange):
   them);
 - outcome: "ok", or the runner's message where a guard stopped the run.
 
-Each frame is one exchange; ``substeps`` fixes the MPM substeps per frame (auto: the CFL bound's). The
-report's second sweep (``mass_ratio_report.substep_sweep``) varies them: what makes a body jitter is the
-number of substeps it is held frozen over, not the frame's length (the plate at r = 1 rests at 4 per 2 ms
-and at 4 per 0.5 ms on a block 16 times stiffer, and jitters at 8 per 2 ms or 10 per 1 ms), which the
-couplers declare as their ``exchange_substeps``.
+``substeps`` fixes the MPM substeps per frame (auto: the CFL bound's) and ``exchanges`` how many exchanges
+a frame makes (auto: the system's choice, ``start.exchanges_per_frame``). The report's second sweep
+(``mass_ratio_report.substep_sweep``) varies the substeps, exchanging once per frame and as the system
+chooses: what makes a body jitter is the number of substeps it is held frozen over between two exchanges,
+not the frame's length (exchanging once per frame, the plate at r = 1 rests at 4 substeps per 2 ms and at 4
+per 0.5 ms on a block 16 times stiffer, and jitters at 8 per 2 ms or 10 per 1 ms), which is why the couplers
+declare their ``exchange_substeps`` and the system splits a frame that needs more.
 """
 
 from __future__ import annotations
@@ -72,8 +74,11 @@ CLOTH = Setup("cloth", 3, 16, (0.5, 0.25, 0.5), (0.4,))
 SETUPS = {"plate": PLATE, "cloth": CLOTH}
 
 
-def scene_dict(setup: Setup, ratio: float, frames: int, substeps: int | str = "auto") -> dict:
-    """The light body on the block at ``ratio``, ``substeps`` per 2 ms frame (a scene dict for ``parse_scene``)."""
+def scene_dict(
+    setup: Setup, ratio: float, frames: int, substeps: int | str = "auto", exchanges: int | str = "auto"
+) -> dict:
+    """The light body on the block at ``ratio``, ``substeps`` per 2 ms frame in ``exchanges`` exchanges (a scene
+    dict for ``parse_scene``)."""
     dx, floor = setup.dx, FLOOR * setup.dx
     areal = DENSITY * dx / ratio
     centre = [0.5, floor + 0.5 * setup.block[1]] + ([0.5] if setup.dim == 3 else [])
@@ -87,7 +92,7 @@ def scene_dict(setup: Setup, ratio: float, frames: int, substeps: int | str = "a
         "dim": setup.dim,
         "precision": "float64",
         "steps": frames,
-        "time": {"frame_dt": 2e-3, "substeps": substeps},
+        "time": {"frame_dt": 2e-3, "substeps": substeps, "exchanges": exchanges},
         "mpm": {"grid": {"cells": setup.cells}, "boundary": {"type": "slip"}, "bodies": [block]},
         "contact": {"model": "forecast", "friction": FRICTION},
     }
@@ -247,21 +252,23 @@ def run(
     block: SettledBlock | None = None,
     delta: float = 1e-4,
     substeps: int | str = "auto",
+    exchanges: int | str = "auto",
 ) -> dict:
     """One row of the sweep (module docstring). ``block``: the block settled alone (``settled_block``),
-    computed when not given; ``substeps``: MPM substeps per frame, each frame one exchange ("auto": the
-    CFL bound's, 4 for the plate's block and 2-3 for the sheet's)."""
+    computed when not given; ``substeps``: MPM substeps per frame ("auto": the CFL bound's, 4 for the plate's
+    block and 2-3 for the sheet's) in ``exchanges`` exchanges ("auto": the system's choice, 1 for comparison)."""
     from cosim.errors import SimulationError
     from cosim.scene import parse_scene
     from cosim.scene.build import build_system
 
     block = settled_block(setup, rest) if block is None else block
-    sim = build_system(parse_scene(scene_dict(setup, ratio, frames, substeps)))
+    sim = build_system(parse_scene(scene_dict(setup, ratio, frames, substeps, exchanges)))
     lay_on(setup, sim, block)
     for coupler in sim.mpm_couplers:
         coupler.added_mass = strong
     probe = Probe(setup, sim)
     row = {"body": setup.body, "ratio": ratio, "scheme": "strong" if strong else "explicit", "substeps": substeps}
+    row["exchanges"] = sim.exchanges
     try:
         settle(sim, rest)
     except SimulationError as err:

@@ -3,16 +3,15 @@
 from __future__ import annotations
 
 import csv
+import itertools
 import warnings
 from pathlib import Path
 
 from cosim.bench.mass_ratio import RATIOS, SETUPS, run, settled_block
 from cosim.errors import CouplingWarning
 
-COLUMNS = ["body", "ratio", "scheme", "substeps", "amplification", "late_rms", "height_error", "outcome"]
-# substeps per frame (one exchange per frame) of the second sweep: the bar holds for the plate up to 4 and for
-# the sheet up to about 20; beyond, the body jitters on the material (docs/bench/coupling.md)
-SUBSTEPS = (4, 8, 20, 40)
+COLUMNS = ["body", "ratio", "scheme", "substeps", "exchanges", "amplification", "late_rms", "height_error", "outcome"]
+SUBSTEPS = (4, 8, 20, 40)  # per frame, in the second sweep
 # what every strong-coupling row must meet (the issue's bar): perturbations die, the body rests on the
 # material within 1 mm/s rms and within one cell of its closed-form height
 LIMITS = {"amplification": 1.0, "late_rms": 1e-3}
@@ -35,21 +34,20 @@ def sweep(quick: bool = False, schemes: tuple[bool, ...] = (True, False)) -> lis
 
 
 def substep_sweep(quick: bool = False) -> list[dict]:
-    """The strong coupling at r = 1 and 5 with a fixed number of substeps per frame (``SUBSTEPS``); ``quick``:
-    r = 1 at 4 and 20 substeps, fewer frames."""
+    """The strong coupling at r = 1 and 5 with a fixed number of substeps per frame (``SUBSTEPS``), exchanging
+    once per frame and as the system chooses; ``quick``: r = 1 at 4 and 20 substeps, fewer frames."""
     ratios, counts = ((1.0,), (4, 20)) if quick else ((1.0, 5.0), SUBSTEPS)
     frames, rest = (120, 60) if quick else (200, 100)
     rows = []
     for setup in SETUPS.values():
         block = settled_block(setup, rest)
-        for ratio in ratios:
-            for K in counts:
-                with warnings.catch_warnings():  # the runner's warning beyond the limit is what this measures
-                    warnings.simplefilter("ignore", CouplingWarning)
-                    row = run(setup, ratio, True, frames, frames // 2, rest, block, substeps=K)
-                row["cell"] = setup.dx
-                rows.append(row)
-                print("  substeps: " + ", ".join(f"{k} {_cell(row.get(k))}" for k in COLUMNS), flush=True)
+        for ratio, K, exchanges in itertools.product(ratios, counts, (1, "auto")):
+            with warnings.catch_warnings():  # the runner's warning beyond the limit is what this measures
+                warnings.simplefilter("ignore", CouplingWarning)
+                row = run(setup, ratio, True, frames, frames // 2, rest, block, substeps=K, exchanges=exchanges)
+            row["cell"] = setup.dx
+            rows.append(row)
+            print("  substeps: " + ", ".join(f"{k} {_cell(row.get(k))}" for k in COLUMNS), flush=True)
     return rows
 
 
@@ -85,16 +83,17 @@ def write(rows: list[dict], by_substeps: list[dict], out_dir: Path) -> list[str]
     lines += [
         "",
         (
-            "Substeps per frame: the strong coupling with a fixed number of MPM substeps between two exchanges "
-            "(auto takes 4 for the plate's block, 2-3 for the sheet's; a stiffer material or a shorter CFL bound "
-            "takes more)"
+            "Substeps per frame: the strong coupling with a fixed number of MPM substeps per 2 ms frame (auto takes "
+            "4 for the plate's block, 2-3 for the sheet's; a stiffer material takes more), exchanging once per "
+            "frame and in the exchanges the system chooses (each within its coupler's `exchange_substeps`)"
         ),
         "",
-        "| body | r | substeps | amplification | late rms [mm/s] | height error [mm] | verdict |",
-        "|---|---|---|---|---|---|---|",
+        "| body | r | substeps per frame | exchanges | amplification | late rms [mm/s] | height error [mm] | verdict |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for r in by_substeps:
-        lines.append(f"| {r['body']} | {r['ratio']:g} | {r['substeps']} | {_measures(r)} | {verdict(r)} |")
+        cells = f"{r['body']} | {r['ratio']:g} | {r['substeps']} | {r['exchanges']}"
+        lines.append(f"| {cells} | {_measures(r)} | {verdict(r)} |")
     return lines
 
 
@@ -124,11 +123,19 @@ def _plot(rows: list[dict], by_substeps: list[dict], path: Path) -> None:
     axes[0].set(xscale="log", xlabel="r", ylabel="amplification per frame")
     axes[1].set(xscale="log", yscale="log", xlabel="r", ylabel="late rms velocity vs material [mm/s]")
     axes[0].legend(fontsize=8)
+    split = {(r["body"], r["ratio"], r["substeps"]) for r in by_substeps if r["exchanges"] > 1}
     for body, ratio in sorted({(r["body"], r["ratio"]) for r in by_substeps}):
-        sel = [r for r in by_substeps if (r["body"], r["ratio"]) == (body, ratio) and r["outcome"] == "ok"]
-        axes[2].plot(
-            [r["substeps"] for r in sel], [1e3 * r["late_rms"] for r in sel], "-o", label=f"{body}, r {ratio:g}"
-        )
+        for once, style in ((True, "--x"), (False, "-o")):  # once per frame: only where the system splits
+            sel = [
+                r
+                for r in by_substeps
+                if (r["body"], r["ratio"]) == (body, ratio)
+                and r["outcome"] == "ok"
+                and (r["exchanges"] == 1) == once
+                and (not once or (body, ratio, r["substeps"]) in split)
+            ]
+            label = f"{body}, r {ratio:g}, " + ("once per frame" if once else "as chosen")
+            axes[2].plot([r["substeps"] for r in sel], [1e3 * r["late_rms"] for r in sel], style, label=label)
     axes[2].axhline(1.0, color="gray", lw=0.8)
     axes[2].set(xscale="log", yscale="log", xlabel="substeps per frame (strong)", ylabel="late rms [mm/s]")
     if by_substeps:

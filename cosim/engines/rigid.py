@@ -114,6 +114,13 @@ class RigidEngine(RigidAdjoint):
 
     # ------------------------------------------------------------------------------------- construction
 
+    def set_time_step(self, dt: float) -> None:
+        """Step ``dt`` [s] from now on (the scene's frame over its exchanges per frame, ``Stepping``)."""
+        if not dt > 0:
+            raise InputError(f"rigid dt must be > 0, got {dt}")
+        self.dt = float(dt)
+        self.world.setTimeStep(self.dt)
+
     def _parse_controls(self) -> list[Control]:
         """Controls in action order; sets DART VELOCITY actuators on velocity/twist joints."""
         controls, start = [], 0

@@ -87,7 +87,7 @@ def build_system(scene: Scene, requires_grad: bool = False, steps: int | None = 
     steps = steps or scene.steps
     start = check_start(scene)  # every check before the first step, also `cosim validate`'s
     bodies, affine = build_bodies(scene, start.bodies)
-    stepping = build_stepping(scene, bodies, requires_grad, steps)
+    stepping = build_stepping(scene, bodies, requires_grad, steps, start.exchanges)
     cfg = MPMConfig(
         dim=scene.dim,
         cells=scene.cells,
@@ -114,12 +114,13 @@ def build_system(scene: Scene, requires_grad: bool = False, steps: int | None = 
     )
 
 
-def build_stepping(scene: Scene, bodies: list, requires_grad: bool, steps: int) -> Stepping:
-    """Substep settings (``preflight`` checked a fixed count against the stability bound); with
+def build_stepping(scene: Scene, bodies: list, requires_grad: bool, steps: int, exchanges: int = 1) -> Stepping:
+    """Substep settings per exchange, ``exchanges`` per frame (``start.exchanges_per_frame``; ``preflight``
+    checked a fixed count per frame against the stability bound, each exchange takes its share); with
     ``requires_grad`` a fixed count for the whole horizon, refused above ``time.max_substeps``."""
-    frame_dt, dx = scene.time.frame_dt, scene.dx
+    frame_dt, dx = scene.time.frame_dt / exchanges, scene.dx
     wave = max(_wave_speed(b, scene.dim) for b in bodies)
-    fixed = scene.time.substeps
+    fixed = math.ceil(scene.time.substeps / exchanges) if scene.time.substeps else 0
     speed = max(np.abs(b.velocities).max() for b in bodies) + np.linalg.norm(scene.gravity) * frame_dt * steps
     grad_substeps = fixed or max(1, math.ceil(frame_dt / (scene.time.cfl * dx / (speed + wave)) - 1e-9))
     if grad_substeps > scene.time.max_substeps and requires_grad:
@@ -127,7 +128,9 @@ def build_stepping(scene: Scene, bodies: list, requires_grad: bool, steps: int) 
             f"time.substeps: gradients need a fixed substep count and the CFL bound asks for "
             f"{grad_substeps} > time.max_substeps = {scene.time.max_substeps}; shorten the horizon or frame_dt"
         )
-    return Stepping(frame_dt, scene.time.cfl, scene.time.max_substeps, fixed or 0, grad_substeps, requires_grad)
+    return Stepping(
+        scene.time.frame_dt, scene.time.cfl, scene.time.max_substeps, fixed, grad_substeps, requires_grad, exchanges
+    )
 
 
 @dataclass
@@ -167,7 +170,7 @@ def build_manipulators(scene: Scene, mpm, stepping: Stepping, start: Start) -> M
         out.engines.append(start.kinematic)
         out.couple(mpm, start.kinematic_coupler, start.kinematic_grids, scene.dim, slots, grad)
     for i, cloth in enumerate(start.cloths):  # before DART: a cloth's reaction on DART links enters the same step
-        _add_cloth(scene, i, cloth, mpm, out)
+        _add_cloth(scene, i, cloth, mpm, out, stepping.frame_dt / stepping.exchanges)
     if start.articulated is not None:
         engine = start.articulated.engine
         out.engines.append(engine)
@@ -181,14 +184,14 @@ def build_manipulators(scene: Scene, mpm, stepping: Stepping, start: Start) -> M
     return out
 
 
-def _add_cloth(scene: Scene, index: int, cloth_start, mpm, out: Manipulators) -> None:
-    """A cloth (``cloth[index]``) from its ``ClothStart``: its engine, action plan, boundary source
-    (with penetration tracing unless ``contact.tracing`` is off) and coupler."""
+def _add_cloth(scene: Scene, index: int, cloth_start, mpm, out: Manipulators, step_length: float) -> None:
+    """A cloth (``cloth[index]``) from its ``ClothStart``, stepping ``step_length`` [s] per exchange: its engine,
+    action plan, boundary source (with penetration tracing unless ``contact.tracing`` is off) and coupler."""
     from cosim.couplers.cloth_boundary import ClothBoundary
     from cosim.couplers.mpm_cloth import MPMClothCoupler
     from cosim.scene.cloth import build_cloth
 
-    engine, plan = build_cloth(scene, index, cloth_start)
+    engine, plan = build_cloth(scene, index, cloth_start, step_length)
     out.engines.append(engine)
     out.cloths.append(engine)
     if plan is not None:

@@ -90,8 +90,9 @@ def cloth_start(scene, index: int) -> ClothStart:
     return ClothStart(mesh, fixed, controls, plan)
 
 
-def build_cloth(scene, index: int, start: ClothStart | None = None):
-    """(ClothEngine, ActionPlan or None) of ``scene.cloth[index]``, from its ``cloth_start`` (made here if not given)."""
+def build_cloth(scene, index: int, start: ClothStart | None = None, step_length: float | None = None):
+    """(ClothEngine, ActionPlan or None) of ``scene.cloth[index]``, from its ``cloth_start`` (made here if not given),
+    stepping ``step_length`` [s] (default ``time.frame_dt``; less with several exchanges per frame)."""
     from cosim.engines.cloth import ClothEngine, ClothMaterial
 
     spec = scene.cloth[index]
@@ -104,7 +105,7 @@ def build_cloth(scene, index: int, start: ClothStart | None = None):
         fixed=start.fixed,
         controls=start.controls,
         gravity=scene.gravity,
-        frame_dt=scene.time.frame_dt,
+        frame_dt=step_length or scene.time.frame_dt,
         name=spec.name,
         rtol=spec.tolerance,
         max_iterations=spec.max_iterations,

@@ -87,18 +87,34 @@ def check_control_regions(scene: Scene, bodies: list[np.ndarray]) -> None:
             )
 
 
-def check_substeps(scene: Scene, velocities: list[np.ndarray]) -> None:
-    """A fixed count keeps dt below dx / c and the viscous bound rho dx^2 / (2 d eta); an automatic
-    count for the first frame (initial speeds, one frame of gravity) stays within ``time.max_substeps``."""
+def first_frame_substeps(scene: Scene, velocities: list[np.ndarray]) -> int:
+    """The substeps of the first frame: the fixed count, else the CFL and viscous bounds' (``_needs``)."""
+    return scene.time.substeps or max(1, math.ceil(max(n[0] for n in _needs(scene, velocities)) - 1e-9))
+
+
+def _needs(scene: Scene, velocities: list[np.ndarray]) -> list[tuple]:
+    """Per body: (substeps the first frame needs, its index, wave speed c [m/s], initial speed [m/s], viscous
+    bound [s]), from the CFL bound over c, the initial speed and one frame of gravity, and the viscous bound."""
     frame_dt, dx, time = scene.time.frame_dt, scene.dx, scene.time
     fall = float(np.linalg.norm(scene.gravity)) * frame_dt
-    worst = None  # (substeps needed, body index, wave speed, initial speed, viscous bound)
+    out = []
     for i, spec in enumerate(scene.mpm.bodies):
         m = spec.material
         c = wave_speed(m.E, m.nu, m.density, scene.dim)
         v = float(np.linalg.norm(velocities[i], axis=1).max()) if len(velocities[i]) else 0.0
         viscous = viscous_time_step(m.density, getattr(m, "viscosity", 0.0), dx, scene.dim)
-        need = max(frame_dt * (c + v + fall) / (time.cfl * dx), frame_dt / viscous)
+        out.append((max(frame_dt * (c + v + fall) / (time.cfl * dx), frame_dt / viscous), i, c, v, viscous))
+    return out
+
+
+def check_substeps(scene: Scene, velocities: list[np.ndarray]) -> None:
+    """A fixed count keeps dt below dx / c and the viscous bound rho dx^2 / (2 d eta); an automatic
+    count for the first frame (initial speeds, one frame of gravity) stays within ``time.max_substeps``."""
+    frame_dt, dx, time = scene.time.frame_dt, scene.dx, scene.time
+    worst = None  # (substeps needed, body index, wave speed, initial speed, viscous bound)
+    for need, i, c, v, viscous in _needs(scene, velocities):
+        m = scene.mpm.bodies[i].material
+        spec = scene.mpm.bodies[i]
         dt = frame_dt / time.substeps if time.substeps else 0.0
         if dt * c > dx:
             raise SceneError(

@@ -44,6 +44,9 @@ class TimeSpec(Strict):
     substeps: Annotated[int, BeforeValidator(_auto_or_int)] = 0  # 0 = auto (CFL)
     cfl: Annotated[float, Field(gt=0, le=1)] = 0.3
     max_substeps: Annotated[int, Field(ge=1, le=100000)] = 2000
+    # exchanges per macro step; 0 = auto: one, or where a light body is coupled with added mass, as many as keep
+    # each within the substeps its coupler rests a body at (``start.exchanges_per_frame``)
+    exchanges: Annotated[int, BeforeValidator(_auto_or_int), Field(ge=0, le=1000)] = 0
 
 
 def _int_or_list(value: Any) -> Any:

@@ -21,7 +21,7 @@ import numpy as np
 
 from cosim.engines import so3
 from cosim.errors import InputError, SceneError
-from cosim.scene.preflight import BodyStart, preflight
+from cosim.scene.preflight import BodyStart, first_frame_substeps, preflight
 from cosim.scene.schema import Scene
 
 
@@ -40,6 +40,7 @@ class Start:
     dart_coupler: object = None  # MPMRigidCoupler, when the MPM sees a link
     dart_plan: object = None  # ActionPlan, when a joint is controlled
     rigid: object = None  # cosim.couplers.rigid_view.RigidBodies, with kinematic bodies or DART
+    exchanges: int = 1  # exchanges per macro step (``exchanges_per_frame``); every engine steps frame_dt / this
 
     @property
     def particles(self) -> int:
@@ -67,11 +68,40 @@ def check_start(scene: Scene) -> Start:
         _kinematic(scene, start)
     if scene.articulated is not None:
         _articulated(scene, start)
+    start.exchanges = exchanges_per_frame(scene, start)
+    step_length = scene.time.frame_dt / start.exchanges
+    if start.kinematic is not None:
+        start.kinematic.frame_dt = step_length
+    if start.articulated is not None:
+        start.articulated.engine.set_time_step(step_length)
     if start.kinematic is not None or start.articulated is not None:
         _rigid_view(scene, start)
         check_start_outside_rigid(scene, start)
     check_loss_joints(scene, start.articulated.engine if start.articulated is not None else None)
     return start
+
+
+def exchanges_per_frame(scene: Scene, start: Start) -> int:
+    """How many exchanges a macro step makes: 1, or where a light body is coupled with added mass (a cloth, a
+    DART body with free dofs), enough that none takes more MPM substeps than its coupler is measured to rest
+    stably at (``exchange_substeps``; beyond, the body frozen over the substeps jitters on the material). From
+    the first frame's substeps (``preflight.first_frame_substeps``): a fixed count, or the CFL bound's.
+    ``time.exchanges`` set (not 0, "auto") overrides it."""
+    from cosim.engines.contract import declares
+
+    if scene.time.exchanges:
+        return scene.time.exchanges
+    limits = []
+    if scene.cloth:
+        from cosim.couplers.mpm_cloth import MPMClothCoupler
+
+        limits.append(MPMClothCoupler.exchange_substeps)
+    if start.dart_coupler is not None and declares(start.dart_coupler, "exchange_limit"):
+        limits.append(start.dart_coupler.exchange_substeps)
+    if not limits:
+        return 1
+    K = first_frame_substeps(scene, [b.velocities for b in start.bodies])
+    return max(1, math.ceil(K / min(limits)))
 
 
 def _kinematic(scene: Scene, start: Start) -> None:
