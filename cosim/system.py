@@ -9,8 +9,10 @@ through their contracts (``cosim.engines.contract``)::
     for e in engines:        (in order) the same exchange with the couplers whose medium is e
                              (a cloth meeting rigid bodies), around s_e' = e.step(s_e, action_e, loads[e])
 
-and its reverse (``vjp``). The runner's guards (``cosim.step_guard``) sit around the exchange: they
-pick the substep count K from the CFL bound (or check a fixed one), redo a step that broke it,
+once per macro step, or as many times as ``Stepping.exchanges`` says (a light body's coupler rests it
+only up to so many substeps between two exchanges, ``cosim.scene.start.exchanges_per_frame``), each
+engine then stepping ``exchange_dt`` = frame_dt / exchanges; and its reverse (``vjp``). The runner's
+guards (``cosim.step_guard``) sit around the exchange: they pick the substep count K from the CFL bound (or check a fixed one), redo a step that broke it,
 and stop with a ``SimulationError`` naming the step, the body and the quantity as soon as a step
 produces NaN/inf, violates the CFL bound, leaves the grid, breaks the energy budget or lets
 material through a rigid body; the MPM engine checks its particles on the device and hands over

@@ -1,6 +1,7 @@
 """Two-way coupling of the MPM with a cloth engine: vertex states in, per-vertex forces and added mass out.
 
-One macro step n (frame T = K dt): the cloth's state s_C^n = {x, v} (V, 3) is the
+One exchange n (T = K dt: a macro step, or its share where it makes several, ``Stepping.exchanges``; beyond
+``exchange_substeps`` substeps per exchange a sheet frozen over them jitters on the material): the cloth's state s_C^n = {x, v} (V, 3) is the
 boundary of the MPM's K substeps (frozen during them, ``ClothBoundary``: the
 material meets the sheet at x^n moving with v_b^n = v^n); the contact reactions
 summed over the step, impulse J^n (V, 3) [N s], push the cloth over its step.

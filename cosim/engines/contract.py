@@ -186,9 +186,9 @@ CAPABILITIES = {
     # couplers
     "carried_state": "state() / set_state(s): a state of its own carried from step to step (the cloth's "
     "penetration tracing), part of the system's state under 'couplers'",
-    "exchange_limit": "exchange_substeps: the most MPM substeps per exchange (per frame) at which its light bodies "
-    "are measured to rest stably on material (`cosim bench coupling`); the runner warns when a frame in which they "
-    "carried material takes more",
+    "exchange_limit": "exchange_substeps: the most MPM substeps per exchange at which its light bodies are measured "
+    "to rest stably on material (`cosim bench coupling`); a macro step makes as many exchanges as keep within it, and "
+    "the runner warns when one in which they carried material takes more",
     # boundary sources
     "substep_hooks": "before_substep(src, s) and before_substep_grad(src, s) around each MPM substep",
     "added_mass": "its reactions carry 'mass', the material that follows it over a frame (a cloth: (V,) [kg] per "
