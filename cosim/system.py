@@ -12,11 +12,12 @@ through their contracts (``cosim.engines.contract``)::
 once per macro step, or as many times as ``Stepping.exchanges`` says (a light body's coupler rests it
 only up to so many substeps between two exchanges, ``cosim.scene.start.exchanges_per_frame``), each
 engine then stepping ``exchange_dt`` = frame_dt / exchanges; and its reverse (``vjp``). The runner's
-guards (``cosim.step_guard``) sit around the exchange: they pick the substep count K from the CFL bound (or check a fixed one), redo a step that broke it,
-and stop with a ``SimulationError`` naming the step, the body and the quantity as soon as a step
-produces NaN/inf, violates the CFL bound, leaves the grid, breaks the energy budget or lets
-material through a rigid body; the MPM engine checks its particles on the device and hands over
-per-body counts (``MPMEngine.health``), not its state.
+guards (``cosim.step_guard``) sit around the exchange: they pick the substep count K from the CFL
+bound (or check a fixed one), redo a step that broke it, and stop with a ``SimulationError``
+naming the step, the body and the quantity as soon as a step produces NaN/inf, violates the CFL
+bound, leaves the grid, breaks the energy budget or lets material through a rigid body; the MPM
+engine checks its particles on the device and hands over per-body counts (``MPMEngine.health``),
+not its state.
 ``rollout`` is the one loop behind ``cosim run``, the objective, gradcheck, optimize and
 the benchmarks. Scenes assemble a system with ``cosim.scene.build_system``.
 """
@@ -187,7 +188,9 @@ class CoupledSystem:
         return seq[plan.segment(n, len(seq))]
 
     # ------------------------------------------------------------ forward
-    def step(self, impulse: np.ndarray | None = None, actions: dict[str, np.ndarray] | None = None):
+    def step(
+        self, impulse: np.ndarray | None = None, actions: dict[str, np.ndarray] | None = None
+    ) -> StepRecord | FrameRecord:
         """One macro step: ``exchanges`` exchanges (one unless a light body's coupler needs more, ``Stepping``),
         each the couplers' boundaries, the MPM's K substeps, the couplers' forces and every engine's step, inside
         the runner's guards (``cosim.step_guard``). ``impulse`` (N, d) [N s] (shared evenly by the exchanges);
@@ -308,7 +311,7 @@ class CoupledSystem:
             "impulse": sum(impulses) / len(outs) if impulses else None,
             "material": {
                 name: _summed([o["material"].get(name, {}) for o in outs])
-                for name in {*outs[0]["material"]} | {n for o in outs for n in o["material"]}
+                for name in {n for o in outs for n in o["material"]}
             },
         }
 
@@ -365,8 +368,8 @@ class CoupledSystem:
 
     # ------------------------------------------------------------ time stepping and checks
     def auto_substeps(self, speed: float) -> int:
-        """Substeps per exchange so that (|v| + c) dt / dx <= cfl, c the fastest elastic wave, and dt stays under the
-        explicit viscous bound rho dx^2 / (2 d eta) of the most viscous liquid."""
+        """Substeps per exchange so that (|v| + c) dt / dx <= cfl, c the fastest elastic wave, and dt stays
+        under the explicit viscous bound rho dx^2 / (2 d eta) of the most viscous liquid."""
         bound = min(self.stepping.cfl * self.dx / (speed + self.mpm.wave_speed()[0]), self.mpm.viscous_time_step()[0])
         return max(1, math.ceil(self.exchange_dt / bound - 1e-9))
 
