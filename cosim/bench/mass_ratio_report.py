@@ -138,6 +138,8 @@ def _plot(rows: list[dict], by_substeps: list[dict], path: Path) -> None:
             axes[2].plot([r["substeps"] for r in sel], [1e3 * r["late_rms"] for r in sel], style, label=label)
     axes[2].axhline(1.0, color="gray", lw=0.8)
     axes[2].set(xscale="log", yscale="log", xlabel="substeps per frame (strong)", ylabel="late rms [mm/s]")
+    axes[2].set_xticks(SUBSTEPS, [str(k) for k in SUBSTEPS])
+    axes[2].minorticks_off()
     if by_substeps:
         axes[2].legend(fontsize=8)
     fig.tight_layout()
