@@ -73,17 +73,14 @@ class RigidEngine(RigidAdjoint):
         collision: bool = True,
         ground: GroundSpec | None = None,
     ) -> None:
-        if dt <= 0:
-            raise InputError(f"rigid dt must be > 0, got {dt}")
         if ground is not None and not collision:
             raise InputError("a rigid ground needs collision on (nothing would touch it)")
         names = [s.name for s in skeleton_specs]
         if len(set(names)) != len(names):
             raise InputError(f"skeleton names must be unique, got {names}")
-        self.dt = float(dt)
         self.specs = list(skeleton_specs)
         self.world = dart.simulation.World()
-        self.world.setTimeStep(self.dt)
+        self.set_time_step(dt)
         self.world.setGravity(np.asarray(gravity, dtype=np.float64))
         options = self.world.getDeactivationOptions()
         options.mEnabled = False
@@ -115,7 +112,7 @@ class RigidEngine(RigidAdjoint):
     # ------------------------------------------------------------------------------------- construction
 
     def set_time_step(self, dt: float) -> None:
-        """Step ``dt`` [s] from now on (the scene's frame over its exchanges per frame, ``Stepping``)."""
+        """Step ``dt`` [s] from now on (a scene builds it with the frame over its exchanges, ``Stepping``)."""
         if not dt > 0:
             raise InputError(f"rigid dt must be > 0, got {dt}")
         self.dt = float(dt)
@@ -207,10 +204,9 @@ class RigidEngine(RigidAdjoint):
         self.set_flat_state(np.concatenate([state["q"], state["qd"]]))
 
     def step(self, inputs: dict) -> tuple[dict, StepRecord]:
-        """One step of dt under ``inputs`` action (action_size,) (None: zeros), forces: per-body
-        wrenches (len(body_names), 6) [torque; force] in the world frame, torque about the body
-        origin (None: zeros) and added_mass (len(body_names), 6, 6) (None: none; ``rigid_added_mass``).
-        Returns ({state}, record)."""
+        """One step of dt under ``inputs`` action (action_size,) (None: zeros), forces: per-body wrenches
+        (len(body_names), 6) [torque; force] in the world frame, torque about the body origin (None: zeros) and
+        added_mass (len(body_names), 6, 6) (None: none; ``rigid_added_mass``). Returns ({state}, record)."""
         record = self.advance(inputs.get("action"), inputs.get("forces"), inputs.get("added_mass"))
         n = self.dofs
         return {"state": {"q": record.next_state[:n], "qd": record.next_state[n:]}}, record
@@ -246,8 +242,7 @@ class RigidEngine(RigidAdjoint):
         self.steps += 1
         after = self.flat_state()
         self._check_finite(after)
-        constraint = self._active_constraint()
-        return StepRecord(before, action, wrenches, after, self.steps, clamped, constraint, added)
+        return StepRecord(before, action, wrenches, after, self.steps, clamped, self._active_constraint(), added)
 
     def _step_with_added_mass(self, before: np.ndarray, action, wrenches, added: np.ndarray) -> None:
         """Redo the step just taken from ``before`` so that the bodies' added masses join their inertia
@@ -261,8 +256,8 @@ class RigidEngine(RigidAdjoint):
         self.world.step()
 
     def _active_constraint(self) -> tuple[str, float] | None:
-        """("skeleton/dof", force) of the largest generalised constraint force of the last step (a joint
-        limit or a rigid contact acted), or None."""
+        """("skeleton/dof", force) of the last step's largest generalised constraint force (a joint limit or a
+        rigid contact acted), or None."""
         for spec, skel in zip(self.specs, self.skeletons):
             forces = np.asarray(skel.getConstraintForces())
             if len(forces) and np.abs(forces).max() > CONSTRAINT_TOL:
@@ -345,8 +340,6 @@ class RigidEngine(RigidAdjoint):
                     "reduce dt, add joint damping or check the applied forces"
                 )
 
-    # ------------------------------------------------------------------------------------ body states
-
     # ------------------------------------------------------------------------------ energy budget
     def energy_and_mass(self) -> tuple[float, float]:
         """(kinetic + potential energy [J] (gravity, joint springs: DART's), mass [kg]) of the skeletons no
@@ -368,9 +361,8 @@ class RigidEngine(RigidAdjoint):
         return 0.0
 
     def points(self) -> np.ndarray:
-        """(n, 3) [m] the origins of the bodies no action drives, which must stay in the MPM's domain if they
-        start in it (one that leaves was flung by what it touches; a driven body goes where its actions
-        take it, an optimiser's trial included)."""
+        """(n, 3) [m] the origins of the bodies no action drives, which must stay in the MPM's domain if they start
+        in it (one that leaves was flung by what it touches; a driven body goes where its actions take it)."""
         return self.body_states()["position"][self._passive]
 
     def point_name(self, i: int) -> str:
