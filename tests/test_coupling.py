@@ -26,7 +26,7 @@ def elastic(name, center, size, velocity, E=2e4, density=500.0):
 def coupled_scene(bodies, skeletons, model, cells=48, steps=60, gravity=(0.0, 0.0), walls="none", **extra):
     return make_scene(
         steps=steps,
-        time={"frame_dt": 2e-3, "substeps": extra.pop("substeps", "auto")},
+        time={"frame_dt": 2e-3, "substeps": extra.pop("substeps", "auto"), "exchanges": extra.pop("exchanges", "auto")},
         mpm={"grid": {"cells": cells}, "boundary": {"type": walls}, "gravity": list(gravity), "bodies": bodies},
         articulated={"skeletons": skeletons, **extra.pop("articulated", {})},
         contact={"model": model, **extra.pop("contact", {})},
@@ -258,6 +258,30 @@ def test_gradients_from_particle_impulses_to_a_joint(model):
     results = check_gradients(obj.evaluate, obj.initial_params(), ["impulse", "action"], obj.natural_scales(), 2)
     for r in results:
         assert abs(r.adjoint) > 0 and r.relative_error < 1e-5, r
+
+
+@pytest.mark.parametrize("exchanges", [1, 3])
+def test_each_exchange_steps_dart_by_its_share_of_the_frame(exchanges):
+    """time.exchanges = M: DART steps M times per macro step with dt = frame / M. A free box falling clear of
+    the material gains g T in a macro step of T, and drops g h^2 M (M + 1) / 2 (semi-implicit Euler, h = T / M):
+    g T^2 with one exchange, 2/3 g T^2 with three."""
+    ball = elastic("ball", [0.3, 0.3], [0.1, 0.1], [0.0, 0.0])
+    scene = coupled_scene(
+        [ball],
+        [free_box("box", [0.7, 0.7], [0.1, 0.1], 100.0)],
+        "forecast",
+        steps=1,
+        gravity=(0.0, -9.81),
+        exchanges=exchanges,
+    )
+    sim = build_system(scene)
+    assert sim.exchanges == exchanges and sim.engines["dart"].dt == pytest.approx(2e-3 / exchanges, rel=1e-12)
+    y0 = sim.engines["dart"].body_states()["position"][0, 1]
+    sim.step()
+    b = sim.engines["dart"].body_states()
+    T, h = 2e-3, 2e-3 / exchanges
+    assert b["linear_velocity"][0, 1] == pytest.approx(-9.81 * T, rel=1e-9)
+    assert b["position"][0, 1] - y0 == pytest.approx(-9.81 * h * h * exchanges * (exchanges + 1) / 2, rel=1e-9)
 
 
 @pytest.mark.parametrize("substeps, exchanges, per_exchange", [(6, 2, 3), (16, 4, 4)])
