@@ -25,7 +25,7 @@ TUNNEL_SHARE, TUNNEL_MIN = 0.01, 10  # particles through a rigid body in one ste
 
 class StepGuard:
     """The guards of ``system`` (a ``CoupledSystem``): ``begin_step``, then per exchange ``begin_exchange`` /
-    ``substeps`` / ``retry`` / ``after_material`` / ``end_exchange``, then ``end_step``, once per macro step."""
+    ``substeps`` / ``retry`` / ``after_material`` / ``end_exchange``, once per macro step."""
 
     def __init__(self, system):
         self.system = system
@@ -50,7 +50,6 @@ class StepGuard:
     def begin_step(self) -> None:
         """Before anything moves in a macro step: the energy budget's start (not in a replay)."""
         self._tracked = self.conservation.begin_step(self.system.step_index)
-        self._exchanges_done = 0
 
     def begin_exchange(self) -> None:
         """Before each exchange of the macro step: the rigid poses it starts from."""
@@ -143,9 +142,9 @@ class StepGuard:
         if mpm_record.impulse is not None:
             cons.add_work(control_work(mpm_record.impulse, mpm_record.state["v"], s.mpm.mass))
 
-    def end_exchange(self, engine_records: dict, coupler_records: dict) -> None:
+    def end_exchange(self, engine_records: dict, coupler_records: dict, last: bool = True) -> None:
         """After every engine stepped in an exchange: the work the engines' prescribed parts and the bodies
-        outside the budget did on them; on the last exchange of the macro step the energy budget of the
+        outside the budget did on them; after the macro step's ``last`` exchange the energy budget of the
         whole system; their points within the grid, particles through rigid bodies."""
         s = self.system
         if self._tracked:
@@ -155,17 +154,12 @@ class StepGuard:
                     cons.add_work(e.external_work(engine_records[name]))
                 for c in s.engine_couplers[name]:
                     cons.add_work(c.external_work(coupler_records[c.name], s.exchange_dt))
-            self._exchanges_done += 1
-            if self._exchanges_done == s.exchanges:
+            if last:
                 cons.end_step(s.step_index)
         self._check_engine_domain()
         if self.tunnels is not None and self._tracked:  # the bodies have moved too: their poses now end the step
             self._check_tunnelling(self._poses)
         self.max_cfl = max(self.max_cfl, self._cfl)
-
-    def end_step(self) -> None:
-        """After the macro step's last exchange (its checks ran in ``end_exchange``)."""
-        self._exchanges_done = 0
 
     # ------------------------------------------------------------ the checks
     def _check_limit(self, K: int) -> None:

@@ -52,33 +52,29 @@ class FrameRecord:
     """A macro step of several exchanges (``Stepping.exchanges``): their records in order. Reads as its
     exchanges together: the checkpoint before the first, the substeps of all, the outputs of the last."""
 
-    subs: list[StepRecord]
-
-    @property
-    def exchanges(self) -> list[StepRecord]:
-        return self.subs
+    exchanges: list[StepRecord]
 
     @property
     def time(self) -> float:
-        return self.subs[0].time
+        return self.exchanges[0].time
 
     @property
     def substeps(self) -> int:
-        return sum(s.substeps for s in self.subs)
+        return sum(s.substeps for s in self.exchanges)
 
     @property
     def outputs(self) -> dict[str, Any]:
-        return self.subs[-1].outputs
+        return self.exchanges[-1].outputs
 
     @property
     def nbytes(self) -> int:
-        return sum(s.nbytes for s in self.subs)
+        return sum(s.nbytes for s in self.exchanges)
 
     @property
     def checkpoint(self) -> dict[str, np.ndarray] | None:
-        return self.subs[0].checkpoint
+        return self.exchanges[0].checkpoint
 
     def keep_checkpoint(self, state: dict[str, np.ndarray] | None) -> None:
         """Hold the MPM state before the first exchange (and each later one's own), or release them all (None)."""
-        for i, s in enumerate(self.subs):
+        for i, s in enumerate(self.exchanges):
             s.keep_checkpoint(None if state is None else state if i == 0 else s.checkpoint)

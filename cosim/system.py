@@ -199,7 +199,6 @@ class CoupledSystem:
         self.guard.begin_step()
         share = impulse if impulse is None or self.exchanges == 1 else impulse / self.exchanges
         subs = [self._exchange(m, share, actions) for m in range(self.exchanges)]
-        self.guard.end_step()
         self.step_index += 1
         self.last = subs[0] if len(subs) == 1 else FrameRecord(subs)
         return self.last
@@ -228,7 +227,7 @@ class CoupledSystem:
         with self._timed("couplers"):  # reactions -> each engine's load (forces, added mass)
             loads = self._loads(coupler_records, outputs["reactions"])
         engine_records = self._step_engines(loads, actions, coupler_records)
-        guard.end_exchange(engine_records, coupler_records)
+        guard.end_exchange(engine_records, coupler_records, last=m == self.exchanges - 1)
         return StepRecord(t0, mpm_record, engine_records, coupler_records, {"reactions": outputs["reactions"]})
 
     def _loads(self, coupler_records: dict, reactions: dict) -> dict[str, dict]:
@@ -301,7 +300,7 @@ class CoupledSystem:
         if isinstance(record, StepRecord):
             return self._exchange_vjp(record, grad)
         outs = []
-        for sub in reversed(record.subs):
+        for sub in reversed(record.exchanges):
             outs.append(self._exchange_vjp(sub, grad))
             grad = outs[-1]["state"]
         impulses = [o["impulse"] for o in outs if o.get("impulse") is not None]

@@ -50,7 +50,7 @@ def substep_sweep(quick: bool = False) -> list[dict]:
                 row["cell"], row["chosen"] = setup.dx, exchanges == "auto"
                 rows.append(row)
                 print("  substeps: " + ", ".join(f"{k} {_cell(row.get(k))}" for k in COLUMNS), flush=True)
-                if row.get("exchanges", 1) == 1:
+                if row["exchanges"] == 1:
                     break
     return rows
 

@@ -121,7 +121,8 @@ def build_stepping(scene: Scene, bodies: list, requires_grad: bool, steps: int, 
     frame_dt, dx = scene.time.frame_dt / exchanges, scene.dx
     wave = max(_wave_speed(b, scene.dim) for b in bodies)
     fixed = math.ceil(scene.time.substeps / exchanges) if scene.time.substeps else 0
-    speed = max(np.abs(b.velocities).max() for b in bodies) + np.linalg.norm(scene.gravity) * frame_dt * steps
+    horizon = scene.time.frame_dt * steps  # [s] the fall the gradient run's fixed count must allow for
+    speed = max(np.abs(b.velocities).max() for b in bodies) + np.linalg.norm(scene.gravity) * horizon
     grad_substeps = fixed or max(1, math.ceil(frame_dt / (scene.time.cfl * dx / (speed + wave)) - 1e-9))
     if grad_substeps > scene.time.max_substeps and requires_grad:
         raise SceneError(

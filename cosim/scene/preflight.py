@@ -113,8 +113,8 @@ def check_substeps(scene: Scene, velocities: list[np.ndarray]) -> None:
     frame_dt, dx, time = scene.time.frame_dt, scene.dx, scene.time
     worst = None  # (substeps needed, body index, wave speed, initial speed, viscous bound)
     for need, i, c, v, viscous in _needs(scene, velocities):
-        m = scene.mpm.bodies[i].material
         spec = scene.mpm.bodies[i]
+        m = spec.material
         dt = frame_dt / time.substeps if time.substeps else 0.0
         if dt * c > dx:
             raise SceneError(

@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from cosim.engines import so3
+from cosim.engines.contract import declares
 from cosim.errors import InputError, SceneError
 from cosim.scene.preflight import BodyStart, first_frame_substeps, preflight
 from cosim.scene.schema import Scene
@@ -87,8 +88,6 @@ def exchanges_per_frame(scene: Scene, start: Start) -> int:
     stably at (``exchange_substeps``; beyond, the body frozen over the substeps jitters on the material). From
     the first frame's substeps (``preflight.first_frame_substeps``): a fixed count, or the CFL bound's.
     ``time.exchanges`` set (not 0, "auto") overrides it."""
-    from cosim.engines.contract import declares
-
     if scene.time.exchanges:
         return scene.time.exchanges
     limits = []
