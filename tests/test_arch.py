@@ -11,10 +11,12 @@ from cosim.errors import InputError
 from cosim.runtime import init_options
 
 
-def test_scatters_are_serial_on_a_cpu_and_atomic_on_a_gpu():
-    assert choices_for("cpu").serial_scatter and choices_for("x64").serial_scatter
-    assert not choices_for("cuda").serial_scatter  # one thread of thousands would crawl
-    assert not choices_for("vulkan").serial_scatter
+def test_scatters_are_serial_on_a_few_cpu_threads_coloured_on_more_and_atomic_on_a_gpu():
+    assert choices_for("cpu").scatter == choices_for("x64", 2).scatter == "serial"
+    assert choices_for("cpu", 4).scatter == choices_for("arm64", 16).scatter == "coloured"
+    assert (
+        choices_for("cuda").scatter == choices_for("vulkan").scatter == "atomic"
+    )  # one thread of thousands would crawl
 
 
 def test_an_engine_takes_its_scatter_from_the_running_arch_unless_told():
@@ -23,8 +25,11 @@ def test_an_engine_takes_its_scatter_from_the_running_arch_unless_told():
     pts = np.full((4, 2), 0.5)
     body = ParticleBody("cube", "elastic", 1e4, 0.3, 1000.0, 1e-4, pts, np.zeros_like(pts))
     assert running_arch() == "x64"
-    assert MPMEngine(MPMConfig(2, (16, 16), 1 / 16, (0.0, -9.8)), [body])._serial  # the session's CPU
-    assert not MPMEngine(MPMConfig(2, (16, 16), 1 / 16, (0.0, -9.8), serial_p2g=False), [body])._serial
+    assert MPMEngine(MPMConfig(2, (16, 16), 1 / 16, (0.0, -9.8)), [body]).scatter == "serial"  # few particles
+    told = MPMEngine(MPMConfig(2, (16, 16), 1 / 16, (0.0, -9.8), scatter="atomic"), [body])
+    assert told.scatter == "atomic"
+    with pytest.raises(ValueError, match="scatter: 'parallel' is none of serial, coloured, atomic"):
+        MPMEngine(MPMConfig(2, (16, 16), 1 / 16, (0.0, -9.8), scatter="parallel"), [body])
 
 
 def test_thread_cap_and_kernel_cache_are_settings(monkeypatch, tmp_path):

@@ -52,8 +52,8 @@ def test_a_gpu_passes_over_the_whole_grid_with_the_same_result(monkeypatch):
     assert not arch.choices_for("cuda").bounded_grid_passes and arch.choices_for("cpu").bounded_grid_passes
     boxed, extent, nodes = rollout("shake_container_2d", 12, None)
     cpu = arch.choices_for("cpu")
-    unbounded = arch.ArchChoices(cpu.serial_scatter, cpu.parallel_min_particles, cpu.parallel_min_nodes)
-    monkeypatch.setattr(arch, "choices_for", lambda name: unbounded)
+    unbounded = arch.ArchChoices(cpu.scatter, cpu.parallel_min_particles, cpu.parallel_min_nodes)
+    monkeypatch.setattr(arch, "choices_for", lambda name, threads=1: unbounded)
     whole, extent_whole, _ = rollout("shake_container_2d", 12, None)
     assert (extent_whole == nodes).all() and np.prod(extent) < 0.5 * np.prod(nodes)
     for key, values in boxed.items():

@@ -1,8 +1,10 @@
 """What depends on the processor Taichi runs on, chosen in one place.
 
-A scatter (P2G, the G2P adjoint) on a CPU runs fastest on one thread with plain adds: several
-threads contend on atomic adds to the same grid nodes. On a GPU one thread would use one of
-thousands of cores, so there the scatter is parallel with atomic adds.
+A scatter (P2G, the G2P adjoint) adds each particle's share to the grid nodes around it (``SCATTERS``).
+On a CPU with few threads it runs fastest on one thread with plain adds: several threads contend on
+atomic adds to the same nodes. With more threads the coloured scatter (``cosim.engines.mpm_bins``)
+spreads it over them, its sums still in an order the particles alone fix. On a GPU one thread would use
+one of thousands of cores, so there the scatter is parallel with atomic adds.
 
 A parallel loop on a CPU costs a dispatch to Taichi's thread pool and back, tens of microseconds
 per loop; a loop with less work than that runs faster on the launching thread. So
@@ -17,7 +19,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-CPU_ARCHES = ("cpu", "x64", "arm64")  # the scene's name and Taichi's names of CPU backends
+CPU_ARCHES = ("cpu", "x64", "arm64")
+# how the scatters (P2G, the G2P adjoint) add to the grid: one thread with plain adds; blocks of one colour
+# in parallel with plain adds (``cosim.engines.mpm_bins``); every particle in parallel with atomic adds.
+# The first two sum in an order fixed by the particles alone (bit-reproducible on any thread count), the
+# atomic one in the threads' order (reproducible to round-off).
+SCATTERS = ("serial", "coloured", "atomic")  # the scene's name and Taichi's names of CPU backends
+COLOURED_MIN_THREADS = 4  # CPU: from this many threads the coloured scatter, below it the serial one
 PARALLEL_MIN_PARTICLES = 2048  # CPU: shorter particle loops run on one thread
 PARALLEL_MIN_NODES = 32768  # CPU: grid loops over fewer nodes run on one thread
 
@@ -26,7 +34,7 @@ PARALLEL_MIN_NODES = 32768  # CPU: grid loops over fewer nodes run on one thread
 class ArchChoices:
     """The settings an engine takes from the arch."""
 
-    serial_scatter: bool  # one thread, non-atomic adds (CPU) instead of parallel atomic adds (GPU)
+    scatter: str  # of ``SCATTERS``
     parallel_min_particles: int = 0  # particle loops over fewer particles run on one thread
     parallel_min_nodes: int = 0  # grid loops over fewer nodes run on one thread
     # grid passes over the box of nodes the particles reach, which the scatter bounds with a min / max
@@ -43,11 +51,15 @@ class ArchChoices:
         return n < self.parallel_min_nodes
 
 
-def choices_for(arch: str) -> ArchChoices:
-    """The choices for ``arch``: 'cpu' (or Taichi's 'x64', 'arm64'), 'cuda', 'gpu', 'vulkan', ..."""
+def choices_for(arch: str, threads: int = 1) -> ArchChoices:
+    """The choices for ``arch`` ('cpu' or Taichi's 'x64', 'arm64'; 'cuda', 'gpu', 'vulkan', ...), on a CPU
+    with Taichi's ``threads``: the coloured scatter costs one thread about a third more than the serial
+    one (its binning, its colours' passes) and gains with every thread, so it is the default from
+    ``COLOURED_MIN_THREADS`` on."""
     if arch in CPU_ARCHES:
-        return ArchChoices(True, PARALLEL_MIN_PARTICLES, PARALLEL_MIN_NODES, bounded_grid_passes=True)
-    return ArchChoices(False)
+        scatter = "coloured" if threads >= COLOURED_MIN_THREADS else "serial"
+        return ArchChoices(scatter, PARALLEL_MIN_PARTICLES, PARALLEL_MIN_NODES, bounded_grid_passes=True)
+    return ArchChoices("atomic")
 
 
 def running_arch() -> str:
@@ -57,6 +69,13 @@ def running_arch() -> str:
     return impl.current_cfg().arch.name
 
 
+def running_threads() -> int:
+    """The CPU threads Taichi runs its parallel loops on now."""
+    from taichi.lang import impl
+
+    return int(impl.current_cfg().cpu_max_num_threads)
+
+
 def current_choices() -> ArchChoices:
     """The choices for the arch Taichi runs on now."""
-    return choices_for(running_arch())
+    return choices_for(running_arch(), running_threads())

@@ -88,23 +88,34 @@ class MPMAdjointKernels(MPMKernels):
         """Adjoint of ``velocity(g, I)``: add g_v to the adjoint of the grid velocity it read."""
         self.grid_v.grad[g, I] += g_v
 
+    @ti.func
+    def _g2p_adjoint_particle(self, p, src, dst, g, out: ti.template(), atomic: ti.template()):
+        """Scatter particle p's new velocity and affine adjoints onto ``out`` over its stencil."""
+        base, fx, w = self.stencil(self.x[src, p])
+        g_C = (4.0 * self.inv_dx) * self.C.grad[dst, p]
+        at_base = self.v.grad[dst, p] - g_C @ fx  # node o's adjoint / weight: g_v + g_C (o - fx)
+        for offset in ti.static(ti.grouped(ti.ndrange(*([3] * self.dim)))):
+            g_node = self.stencil_weight(w, offset) * self.plus_steps(at_base, g_C, offset, 0)
+            self.add_at(out, g, base + offset, g_node, atomic)
+
     @ti.kernel
-    def _g2p_adjoint_scatter(self, serial: ti.template(), src: ti.i32, dst: ti.i32, g: ti.i32, out: ti.template()):
+    def _g2p_adjoint_scatter(self, scatter: ti.template(), src: ti.i32, dst: ti.i32, g: ti.i32, out: ti.template()):
         """Adjoint of G2P (``_g2p_advect``) with respect to the velocities it gathered: scatter the new velocity's and
         affine field's adjoints onto ``out``: the grid velocity's adjoint (copy g) when G2P read the engine's
         own grid, else ``gathered_grad`` (``_gathered_grad_to_source`` hands it to the last grid hook).
-        ``serial``: one thread with non-atomic adds (faster than atomics on CPUs), as in ``_p2g``."""
-        ti.loop_config(serialize=serial)
-        for p in range(self.count[None]):
-            base, fx, w = self.stencil(self.x[src, p])
-            g_C = (4.0 * self.inv_dx) * self.C.grad[dst, p]
-            at_base = self.v.grad[dst, p] - g_C @ fx  # node o's adjoint / weight: g_v + g_C (o - fx)
-            for offset in ti.static(ti.grouped(ti.ndrange(*([3] * self.dim)))):
-                g_node = self.stencil_weight(w, offset) * self.plus_steps(at_base, g_C, offset, 0)
-                if ti.static(len(out.shape) == self.dim):
-                    out[base + offset] += g_node
-                else:
-                    out[g, base + offset] += g_node
+        ``scatter`` as in ``_p2g`` (the coloured one over ``bin_particles``' lists of slot src)."""
+        if ti.static(scatter == "coloured"):
+            for colour in ti.static(range(self.colours)):
+                ti.loop_config(block_dim=1)  # a block per task: a colour has few
+                for i in range(self.colour_count[colour]):
+                    blk = self.colour_blocks[colour, i]
+                    first = self.block_start[blk]
+                    for k in range(first, first + self.block_count[blk]):
+                        self._g2p_adjoint_particle(self.bin_order[k], src, dst, g, out, False)
+        else:
+            ti.loop_config(serialize=scatter == "serial")
+            for p in range(self.count[None]):
+                self._g2p_adjoint_particle(p, src, dst, g, out, scatter == "atomic")
 
     @ti.kernel
     def _g2p_adjoint_position(self, src: ti.i32, dst: ti.i32, g: ti.i32, source: ti.template()):
@@ -254,10 +265,12 @@ class MPMAdjointKernels(MPMKernels):
             lo, hi = self.ranges[b]
             self._advect_adjoint(self.materials[b], b, lo, hi, s, s + 1, dt, self.material_grads)
         self._g2p_adjoint_position(s, s + 1, s, self._grid_out)
+        if self.scatter == "coloured":
+            self.bin_particles(s, 0, self.n_particles)
         if self._grid_out is self:  # no grid hook: straight onto the grid velocity's adjoint
-            self._g2p_adjoint_scatter(self._serial, s, s + 1, s, self.grid_v.grad)
+            self._g2p_adjoint_scatter(self.scatter, s, s + 1, s, self.grid_v.grad)
         else:
-            self._g2p_adjoint_scatter(self._serial, s, s + 1, s, self.gathered_grad)
+            self._g2p_adjoint_scatter(self.scatter, s, s + 1, s, self.gathered_grad)
             self._gathered_grad_to_source(s, self._grid_out)
         for hook in reversed(self.grid_hooks):
             hook.apply_grad(s, s, s, dt)

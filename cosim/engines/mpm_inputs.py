@@ -45,7 +45,7 @@ class MPMConfig:
     requires_grad: bool = False
     grad_substeps: int = 1  # gradient mode: substeps per macro step (slots = this + 1)
     has_controls: bool = False
-    serial_p2g: bool | None = None  # single-threaded non-atomic scatter; None: by the arch (cosim.engines.arch)
+    scatter: str | None = None  # "serial" | "coloured" | "atomic" (``cosim.engines.arch``); None: by the arch
 
 
 STATE_KEYS = ("x", "v", "C", "F")

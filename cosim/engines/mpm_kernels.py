@@ -27,9 +27,10 @@ import numpy as np
 import taichi as ti
 
 from cosim.engines import field_pool
-from cosim.engines.arch import current_choices
+from cosim.engines.arch import SCATTERS, current_choices
 from cosim.engines.data_oriented import data_oriented
 from cosim.engines.materials import MATERIALS
+from cosim.engines.mpm_bins import ParticleBins
 from cosim.engines.mpm_inputs import MPMConfig, ParticleBody, particle_capacity
 from cosim.engines.mpm_slot_io import SlotIO
 from cosim.engines.mpm_stencil import StencilFunctions, stencil_rows
@@ -40,7 +41,7 @@ WALL_SOFT = 1e-4  # [m/s] the domain walls' removal of an approach is rounded ov
 
 
 @data_oriented
-class MPMKernels(StencilFunctions, SlotIO):
+class MPMKernels(StencilFunctions, SlotIO, ParticleBins):
     """Fields, kernels and substep phases of the MPM; hooks and the contract live in ``MPMEngine``."""
 
     def __init__(self, config: MPMConfig, bodies: list[ParticleBody]):
@@ -115,10 +116,15 @@ class MPMKernels(StencilFunctions, SlotIO):
             self.padded(np.concatenate([np.full(b.n, i, dtype=np.int32) for i, b in enumerate(bodies)]))
         )
         choices = current_choices()
-        self._serial = choices.serial_scatter if config.serial_p2g is None else bool(config.serial_p2g)
         # loops too short to repay a CPU thread-pool dispatch run on the launching thread (``arch``); hooks
         # looping over this engine's particles or nodes follow the same two flags
         self.serial_particle_loops = choices.serial_particles(self.n_particles)
+        # P2G's and the G2P adjoint's (``arch.SCATTERS``): by the arch, serial where the particle loops are
+        self.scatter = config.scatter or ("serial" if self.serial_particle_loops else choices.scatter)
+        if self.scatter not in SCATTERS:
+            raise ValueError(f"MPMConfig.scatter: {self.scatter!r} is none of {', '.join(SCATTERS)}")
+        if self.scatter == "coloured":
+            self._init_bins()
         self.bounded_grid = choices.bounded_grid_passes  # else every grid pass covers the whole grid (GPU)
         if not self.bounded_grid:
             self.active_hi.from_numpy(np.tile(np.array(self.nodes, dtype=np.int32), (self.n_grids, 1)))
@@ -239,10 +245,38 @@ class MPMKernels(StencilFunctions, SlotIO):
             mom += hook.output[g, p]
         return mom
 
+    @ti.func
+    def add_at(self, fld: ti.template(), g, I, value, atomic: ti.template()):
+        """fld[g, I] += value (fld[I] for a field without grid copies): an atomic add, or a plain load and
+        store where no other thread writes the node (one thread, or a colour's blocks: ``mpm_bins``)."""
+        if ti.static(len(fld.shape) == self.dim):
+            if ti.static(atomic):
+                fld[I] += value
+            else:
+                fld[I] = fld[I] + value
+        elif ti.static(atomic):
+            fld[g, I] += value
+        else:
+            fld[g, I] = fld[g, I] + value
+
+    @ti.func
+    def _p2g_particle(self, b, p, src, g, control_share, atomic: ti.template()):
+        """Scatter particle p's mass and momentum onto its stencil (of body b); returns its base node."""
+        m_p = self.p_mass[b]
+        base, fx, w = self.stencil(self.x[src, p])
+        # node o receives weight * (mom + affine @ (o - fx) dx) = weight * (at_base + sum_k o_k steps[:, k])
+        steps = self.affine[g, p] * self.dx
+        at_base = self.particle_momentum(src, g, p, m_p, control_share) - steps @ fx
+        for offset in ti.static(ti.grouped(ti.ndrange(*([3] * self.dim)))):
+            mom = self.plus_steps(at_base, steps, offset, 0)
+            share = self.stencil_weight(w, offset) * ti.Vector([mom[k] for k in ti.static(range(self.dim))] + [m_p])
+            self.add_at(self.grid_mm, g, base + offset, share, atomic)
+        return base
+
     @ti.kernel
     def _p2g(
         self,
-        serial: ti.template(),
+        scatter: ti.template(),
         b: ti.i32,
         start: ti.i32,
         end: ti.i32,
@@ -255,30 +289,34 @@ class MPMKernels(StencilFunctions, SlotIO):
         copy g, which the grid passes loop over (a body usually covers a small part of the domain: the
         benchmark's 30k-particle block touches ~7k of a 64³ grid's 274k nodes), started afresh by the first
         body's scatter, widened by ``box_margin`` nodes on every side (a grid hook reading a node's
-        neighbours asks for it) within the grid. ``serial``: one thread, non-atomic adds and min / max
-        (Taichi demotes the atomics of a serial loop; faster than contended atomics on CPUs); its adjoint
-        (``cosim.engines.mpm_adjoint``) is a parallel gather."""
+        neighbours asks for it) within the grid. ``scatter`` (``SCATTERS``): "serial", one thread with plain
+        adds and min / max; "coloured", the blocks ``bin_particles`` listed, a colour at a time, each block's
+        particles in index order on one thread with plain adds (the box from the binning); "atomic", every
+        particle in parallel with atomic adds. The adjoint (``cosim.engines.mpm_adjoint``) is a parallel gather."""
         margin = ti.static(self.box_margin)
         bounded = ti.static(self.bounded_grid)  # else the box stays the whole grid (``arch``)
         if ti.static(bounded):  # noqa: SIM102 (a compile-time test: Taichi cannot join it with a run-time one)
             if first_body:
                 self.active_lo[g] = ti.Vector(self.nodes)
                 self.active_hi[g] = ti.Vector.zero(ti.i32, self.dim)
-        ti.loop_config(serialize=serial)
-        for p in range(start, end):
-            m_p = self.p_mass[b]
-            base, fx, w = self.stencil(self.x[src, p])
+        if ti.static(scatter == "coloured"):
             if ti.static(bounded):
-                ti.atomic_min(self.active_lo[g], base - margin)
-                ti.atomic_max(self.active_hi[g], base + 3 + margin)
-            # node o receives weight * (mom + affine @ (o - fx) dx) = weight * (at_base + sum_k o_k steps[:, k])
-            steps = self.affine[g, p] * self.dx
-            at_base = self.particle_momentum(src, g, p, m_p, control_share) - steps @ fx
-            for offset in ti.static(ti.grouped(ti.ndrange(*([3] * self.dim)))):
-                mom = self.plus_steps(at_base, steps, offset, 0)
-                self.grid_mm[g, base + offset] += self.stencil_weight(w, offset) * ti.Vector(
-                    [mom[k] for k in ti.static(range(self.dim))] + [m_p]
-                )
+                ti.atomic_min(self.active_lo[g], self.reach_lo[None] - margin)
+                ti.atomic_max(self.active_hi[g], self.reach_hi[None] + 2 + margin)
+            for colour in ti.static(range(self.colours)):
+                ti.loop_config(block_dim=1)  # a block per task: a colour has few
+                for i in range(self.colour_count[colour]):
+                    blk = self.colour_blocks[colour, i]
+                    first = self.block_start[blk]
+                    for k in range(first, first + self.block_count[blk]):
+                        self._p2g_particle(b, self.bin_order[k], src, g, control_share, False)
+        else:
+            ti.loop_config(serialize=scatter == "serial")
+            for p in range(start, end):
+                base = self._p2g_particle(b, p, src, g, control_share, scatter == "atomic")
+                if ti.static(bounded):
+                    ti.atomic_min(self.active_lo[g], base - margin)
+                    ti.atomic_max(self.active_hi[g], base + 3 + margin)
         if ti.static(bounded):  # noqa: SIM102 (compile-time tests)
             if ti.static(margin > 0):  # the widened box kept inside the grid
                 self.active_lo[g] = ti.max(self.active_lo[g], 0)
@@ -390,7 +428,9 @@ class MPMKernels(StencilFunctions, SlotIO):
             hook.apply(src, g, s, dt)
         for b, (mat, (lo, hi)) in enumerate(zip(self.materials, self.ranges)):
             self._stress(mat, b, lo, hi, src, g, dt)
-            self._p2g(self._serial, b, lo, hi, src, g, control_share, b == 0)
+            if self.scatter == "coloured":
+                self.bin_particles(src, lo, hi)
+            self._p2g(self.scatter, b, lo, hi, src, g, control_share, b == 0)
 
     def coupling(self, src: int, s: int, dt: float) -> None:
         """Grid update (velocities, gravity, walls), then the grid hooks in the order attached."""

@@ -25,10 +25,15 @@ class StencilFunctions:
     def stencil(self, xp):
         """Base node, fractional position (in cells) and per-axis quadratic B-spline weights of the
         3^d nodes around position xp [m]; node ``base + offset`` has weight ``stencil_weight(w, offset)``."""
-        lim = ti.Vector(self.nodes) - 3
-        base = ti.max(ti.min(ti.cast(xp * self.inv_dx - 0.5, ti.i32), lim), 0)
+        base = self.stencil_base(xp)
         fx = xp * self.inv_dx - ti.cast(base, float)
         return base, fx, self.spline_weights(fx)
+
+    @ti.func
+    def stencil_base(self, xp):
+        """The first of the 3^d stencil nodes around position xp [m] (kept inside the grid)."""
+        lim = ti.Vector(self.nodes) - 3
+        return ti.max(ti.min(ti.cast(xp * self.inv_dx - 0.5, ti.i32), lim), 0)
 
     @ti.func
     def spline_weights(self, fx):

@@ -129,6 +129,10 @@ class MPMSpec(Strict):
     boundary: BoundarySpec = BoundarySpec()
     gravity: Vec | None = None  # [m/s^2], default -9.81 along y
     bodies: Annotated[list[BodySpec], Field(min_length=1)]
+    # how P2G and the G2P adjoint add to the grid (cosim.engines.arch.SCATTERS): auto picks by the arch and
+    # CPU threads; serial and coloured sum in an order the particles fix (bit-reproducible on any thread
+    # count), atomic in the threads' order (reproducible to round-off)
+    scatter: Literal["auto", "serial", "coloured", "atomic"] = "auto"
 
 
 # ---------------------------------------------------------------- controls

@@ -1,0 +1,141 @@
+"""Particles binned by grid block, for a parallel scatter whose sums do not depend on the threads.
+
+A scatter (P2G, the G2P adjoint) adds every particle's share to the 3^d nodes of its stencil. On a
+CPU it ran on one thread (contended atomic adds cost more than they gain on a few cores), which caps
+the MPM on a many-core machine. The *coloured* scatter splits the grid into blocks of ``BLOCK`` cells
+per axis and the blocks into 2^d colours by the parity of their coordinates: the stencils of two
+particles in different blocks of one colour never share a node (a block's particles reach
+``BLOCK + 2`` nodes along an axis, less than the two blocks between same-coloured ones), so the blocks
+of one colour scatter in parallel with plain adds, one thread per block, and the colours in turn.
+
+``bin_particles`` lists each block's particles in ascending index: a counting sort whose counts are
+kept per chunk of ``CHUNKS`` equal runs of particles (a chunk is one thread's), so the order, and with
+it every node's sum, is the same on 1 thread or 64, run after run. Each pass touches the particles
+once; the per-block passes cover only the blocks the particles reach.
+"""
+
+import numpy as np
+import taichi as ti
+
+from cosim.engines import field_pool
+from cosim.engines.data_oriented import data_oriented
+
+BLOCK = 4  # grid cells per block and axis (at least 2 keeps same-coloured blocks' stencils apart)
+CHUNKS = 64  # runs of particles counted apart: at most this many threads count and place at once
+
+
+@data_oriented
+class ParticleBins:
+    """Block lists of the particles (``bin_particles``), read by the coloured scatters of ``MPMKernels``."""
+
+    def _init_bins(self) -> None:
+        """Fields of the block lists, for the engine's ``nodes`` and ``capacity`` (a ``MPMKernels`` base)."""
+        d = self.dim
+        self.bin_blocks = tuple(-(-n // BLOCK) for n in self.nodes)  # blocks per axis
+        n_blocks = int(np.prod(self.bin_blocks))
+        self.colours = 2**d
+        per_colour = int(np.prod([-(-b // 2) for b in self.bin_blocks]))
+        self.block_of = field_pool.scalar(self, ti.i32, shape=self.capacity)  # each particle's block
+        self.bin_order = field_pool.scalar(self, ti.i32, shape=self.capacity)  # particles by block, index order
+        # per chunk and block: the count, then the chunk's place within the block; zero between calls
+        self.chunk_cursor = field_pool.scalar(self, ti.i32, shape=(CHUNKS, n_blocks))
+        self.block_start = field_pool.scalar(self, ti.i32, shape=n_blocks)  # first entry in bin_order
+        self.block_count = field_pool.scalar(self, ti.i32, shape=n_blocks)
+        self.colour_blocks = field_pool.scalar(self, ti.i32, shape=(self.colours, per_colour))  # non-empty ones
+        self.colour_count = field_pool.scalar(self, ti.i32, shape=self.colours)
+        self.reach_lo = field_pool.vector(self, d, ti.i32, shape=())  # the stencils' base nodes: [lo, hi)
+        self.reach_hi = field_pool.vector(self, d, ti.i32, shape=())
+        self.bin_lo = field_pool.vector(self, d, ti.i32, shape=())  # the blocks reached: [bin_lo, bin_hi)
+        self.bin_hi = field_pool.vector(self, d, ti.i32, shape=())
+        self.bin_fill = field_pool.scalar(self, ti.i32, shape=())  # entries of bin_order placed so far
+
+    @ti.func
+    def block_index(self, J):
+        """Linear index of block J (row-major over ``bin_blocks``)."""
+        index = 0
+        for k in ti.static(range(self.dim)):
+            index = index * self.bin_blocks[k] + J[k]
+        return index
+
+    @ti.func
+    def colour_of(self, J):
+        """Colour 0 .. 2^d - 1 of block J: the parities of its coordinates as bits."""
+        colour = 0
+        for k in ti.static(range(self.dim)):
+            colour = colour * 2 + J[k] % 2
+        return colour
+
+    @ti.func
+    def chunk_range(self, c, start, end):
+        """Particles [lo, hi) of chunk c of the range [start, end)."""
+        length = (end - start + CHUNKS - 1) // CHUNKS
+        lo = ti.min(start + c * length, end)
+        return lo, ti.min(lo + length, end)
+
+    def bin_particles(self, src: int, start: int, end: int) -> None:
+        self._bin_count(src, start, end)
+        self._bin_place(start, end)
+
+    @ti.kernel
+    def _bin_count(self, src: ti.i32, start: ti.i32, end: ti.i32):
+        """List the blocks' particles of [start, end) in slot src: ``colour_blocks`` (the non-empty blocks
+        of each colour, ``colour_count`` of them), each block's entries [``block_start``,
+        ``block_start`` + ``block_count``) of ``bin_order`` (its particles in ascending index)."""
+        d = ti.static(self.dim)
+        self.reach_lo[None] = ti.Vector(self.nodes)
+        self.reach_hi[None] = ti.Vector.zero(ti.i32, d)
+        ti.loop_config(block_dim=1)  # a chunk per task (Taichi's CPU tasks take 32 iterations by default)
+        for c in range(CHUNKS):  # count per chunk and block; the base nodes reached
+            lo, hi = self.chunk_range(c, start, end)
+            reached_lo = ti.Vector(self.nodes)
+            reached_hi = ti.Vector.zero(ti.i32, d)
+            for p in range(lo, hi):
+                base = self.stencil_base(self.x[src, p])
+                reached_lo = ti.min(reached_lo, base)
+                reached_hi = ti.max(reached_hi, base + 1)
+                blk = self.block_index(base // BLOCK)
+                self.block_of[p] = blk
+                self.chunk_cursor[c, blk] = self.chunk_cursor[c, blk] + 1  # this chunk's own column
+            if hi > lo:
+                ti.atomic_min(self.reach_lo[None], reached_lo)
+                ti.atomic_max(self.reach_hi[None], reached_hi)
+        self.bin_lo[None] = self.reach_lo[None] // BLOCK
+        self.bin_hi[None] = (self.reach_hi[None] - 1) // BLOCK + 1
+
+    @ti.kernel
+    def _bin_place(self, start: ti.i32, end: ti.i32):
+        d = ti.static(self.dim)
+        for J in ti.grouped(ti.ndrange(*[(self.bin_lo[None][k], self.bin_hi[None][k]) for k in ti.static(range(d))])):
+            blk = self.block_index(J)  # counts -> each chunk's first place within the block
+            total = 0
+            for c in range(CHUNKS):
+                count = self.chunk_cursor[c, blk]
+                if count > 0:  # (a chunk with none here keeps its zero: the last loop resets only its own)
+                    self.chunk_cursor[c, blk] = total
+                    total += count
+            self.block_count[blk] = total
+        for colour in range(self.colours):
+            self.colour_count[colour] = 0
+        ti.loop_config(serialize=True)  # the blocks' places in bin_order, in block order
+        for J in ti.grouped(ti.ndrange(*[(self.bin_lo[None][k], self.bin_hi[None][k]) for k in ti.static(range(d))])):
+            blk = self.block_index(J)
+            self.block_start[blk] = self.bin_fill[None]
+            self.bin_fill[None] += self.block_count[blk]
+            if self.block_count[blk] > 0:
+                colour = self.colour_of(J)
+                self.colour_blocks[colour, self.colour_count[colour]] = blk
+                self.colour_count[colour] += 1
+        ti.loop_config(block_dim=1)
+        for c in range(CHUNKS):  # place, in index order within each chunk: chunks in order within a block
+            lo, hi = self.chunk_range(c, start, end)
+            for p in range(lo, hi):
+                blk = self.block_of[p]
+                place = self.chunk_cursor[c, blk]
+                self.bin_order[self.block_start[blk] + place] = p
+                self.chunk_cursor[c, blk] = place + 1
+        ti.loop_config(block_dim=1)
+        for c in range(CHUNKS):  # leave the cursors zero for the next call
+            lo, hi = self.chunk_range(c, start, end)
+            for p in range(lo, hi):
+                self.chunk_cursor[c, self.block_of[p]] = 0
+        self.bin_fill[None] = 0
