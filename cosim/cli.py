@@ -12,7 +12,7 @@ import sys
 from pathlib import Path
 
 from cosim.bench import BENCHMARKS
-from cosim.cli_args import add_ray_options, positive_float, positive_int
+from cosim.cli_args import add_ray_options, positive_float, positive_int, positive_ints, words
 from cosim.errors import CosimError
 
 DEFAULT_SCENE = "cloth_catch.yaml"
@@ -237,6 +237,10 @@ def cmd_bench(args) -> int:
         sizes=args.sizes,
         baseline=args.baseline,
         profile=args.profile,
+        arch=args.arch,
+        threads=args.threads,
+        scatters=args.scatter,
+        particles=args.particles,
     )
 
 
@@ -393,6 +397,10 @@ def make_parser() -> argparse.ArgumentParser:
         "a virtualenv or a checkout), interleaved; prints current/baseline ratios",
     )
     b.add_argument("--profile", action="store_true", help="mpm: Taichi's kernel profile of 3D 64³ float32")
+    b.add_argument("--arch", choices=["cpu", "cuda"], default="cpu", help="mpm: where Taichi runs (cuda: 30k-2M)")
+    b.add_argument("--threads", type=positive_ints, metavar="N,N", help="mpm: each config on these CPU thread counts")
+    b.add_argument("--scatter", type=words, metavar="S,S", help="mpm: each config with these scatters (serial, ...)")
+    b.add_argument("--particles", type=positive_int, metavar="N", help="mpm: one 3D float32 block of about N particles")
     b.add_argument("--count", type=positive_int, default=200, help="fuzz: how many random scenes (default 200)")
     b.add_argument("--seed", type=int, default=0, help="fuzz: the first scene's seed; the others follow (default 0)")
     b.add_argument("--steps", type=positive_int, default=10_000, help="long: macro steps per scene (default 10000)")

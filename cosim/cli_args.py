@@ -13,6 +13,16 @@ def add_ray_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--address", help="a Ray cluster's address (e.g. 10.0.0.5:6379); default: a local Ray")
 
 
+def positive_ints(text: str) -> list[int]:
+    """A comma-separated list of positive integers ("1,2,4")."""
+    return [positive_int(word) for word in text.split(",")]
+
+
+def words(text: str) -> list[str]:
+    """A comma-separated list of words ("serial,coloured")."""
+    return [w.strip() for w in text.split(",") if w.strip()]
+
+
 def positive_int(text: str) -> int:
     try:
         value = int(text)

@@ -35,6 +35,10 @@ def run_bench(
     sizes: bool = False,
     baseline: Path | None = None,
     profile: bool = False,
+    arch: str = "cpu",
+    threads: list[int] | None = None,
+    scatters: list[str] | None = None,
+    particles: int | None = None,
 ) -> int:
     """Run benchmark ``what`` (one of ``BENCHMARKS``), writing into ``out_dir``; returns the exit code.
 
@@ -43,17 +47,24 @@ def run_bench(
     ``count`` / ``seed`` (fuzz): how many random scenes, from which seed (``workers``: its processes);
     ``steps`` / ``scenes`` (long): macro steps per scene, which shipped scenes (default one of each type);
     ``sizes`` / ``baseline`` / ``profile`` (mpm): 10k-1M particles; current/baseline ratios against the
-    cosim in that folder (``repeat`` runs each); Taichi's kernel profile (``cosim.bench.mpm``).
+    cosim in that folder (``repeat`` runs each); Taichi's kernel profile; ``arch``, ``threads``, ``scatters``,
+    ``particles``: on the GPU, on each CPU thread count, with each scatter, one block of that size
+    (``cosim.bench.mpm``).
     """
-    if what != "mpm" and (sizes or baseline is not None or profile):
+    mpm_only = sizes or baseline is not None or profile or arch != "cpu" or threads or scatters or particles
+    if what != "mpm" and mpm_only:
         from cosim.errors import InputError
 
-        raise InputError(f"--sizes, --baseline and --profile are options of `bench mpm`, not of `bench {what}`")
+        raise InputError(
+            "--sizes, --baseline, --profile, --arch, --threads, --scatter and --particles are options of "
+            f"`bench mpm`, not of `bench {what}`"
+        )
     from cosim.bench.report import bench_command
 
     command = bench_command(
         what, out=out_dir, quick=quick, repeat=repeat, sizes=sizes, baseline=baseline, profile=profile, count=count,
-        seed=seed, steps=steps, scene=scenes, workers=workers, address=address,
+        seed=seed, steps=steps, scene=scenes, workers=workers, address=address, arch=arch, particles=particles,
+        threads=",".join(map(str, threads)) if threads else None, scatter=",".join(scatters) if scatters else None,
     )  # fmt: skip
     if what == "long":
         from cosim.bench.long_runs import run_long_bench
@@ -88,6 +99,7 @@ def run_bench(
         from cosim.bench.mpm_modes import run_mpm_bench
 
         return run_mpm_bench(
-            out_dir, quick=quick, sizes=sizes, baseline=baseline, repeat=repeat, profile=profile, command=command
-        )
+            out_dir, quick=quick, sizes=sizes, baseline=baseline, repeat=repeat, profile=profile, command=command,
+            arch=arch, threads=threads, scatters=scatters, particles=particles,
+        )  # fmt: skip
     raise ValueError(f"unknown benchmark {what!r}; choose one of {BENCHMARKS}")

@@ -9,8 +9,11 @@ ratio, peak resident memory and the hardware; each mode writes a CSV and a markd
 command line, the date and the hardware (``cosim.bench.report``).
 
 Modes: the four ``CONFIGS`` (default); ``--sizes``, 3D float32 from 10k to 1M particles
-(``SIZES``, grid from ``sized_grid``); ``--baseline DIR``, current/baseline ratios of either
-set; ``--profile``, Taichi's kernel profiler over a forward and a backward pass of 3D 64³ float32.
+(``SIZES``, grid from ``sized_grid``); ``--particles N``, one 3D float32 block of about N;
+``--arch cuda``, the GPU's ``GPU_CONFIGS`` (30k, 250k, 2M particles; or the sizes asked for);
+``--threads 1,2,...`` and ``--scatter serial,coloured``, every configuration on each CPU thread
+count and with each scatter (the many-core curve); ``--baseline DIR``, current/baseline ratios of
+either set; ``--profile``, Taichi's kernel profiler over a forward and a backward pass of 3D 64³ float32.
 
 The engine is timed alone, without the runner's checks (CFL, NaN, domain, energy budget: ``GUARDS_OFF``);
 every mode says so when it starts, in its reports' headers and in its CSVs' ``guards_off`` column.
@@ -41,6 +44,13 @@ CONFIGS = [
 # (particles wanted, substeps, macro steps): fewer steps at large N keep the sweep short,
 # and fewer substeps bound the gradient engine's K grids (K x 8 M nodes at 1M particles).
 SIZES = [(10_000, 20, 10), (30_000, 20, 10), (100_000, 20, 4), (300_000, 10, 3), (1_000_000, 5, 2)]
+# the GPU's sizes: 30k particles on 64³ (the CPU's 3D CONFIGS, the peers' comparison), 250k on 128³, and
+# 2.05M filling half of 128³'s side; float32, 10 substeps a macro step
+GPU_CONFIGS = [
+    {"dim": 3, "cells": 64, "side": 31, "precision": "float32", "substeps": 10, "macro_steps": 10},
+    {"dim": 3, "cells": 128, "side": 63, "precision": "float32", "substeps": 10, "macro_steps": 5},
+    {"dim": 3, "cells": 128, "side": 127, "precision": "float32", "substeps": 10, "macro_steps": 3},
+]
 FILL = 0.25  # the block's side over the domain's: 64³ for the 31³ block of CONFIGS
 MEASURE = Path(__file__).with_name("mpm_measure.py")
 # Taichi's kernel cache for the children (any version reads TI_* variables; ours win if set): a
@@ -60,10 +70,16 @@ CONFIG_COLUMNS = [
 TABLE = [
     *CONFIG_COLUMNS,
     ("steps", "steps", ">6"),
+    ("arch", "arch", ">4"),
+    ("threads", "threads", ">7"),
+    ("scatter", "scatter", ">8"),
     ("fwd_Mpss", "fwd M/s", ">8.2f"),
     ("fwd_bwd_Mpss", "f+b M/s", ">8.3f"),
     ("bwd_fwd_ratio", "bwd/fwd", ">7.2f"),
+    ("fb_over_fwd", "f+b/fwd", ">7.2f"),
     ("peak_MiB", "peak MiB", ">8.0f"),
+    ("field_MiB", "field MiB", ">9.0f"),
+    ("device_MiB", "GPU MiB", ">8.0f"),
     ("fwd_B_per_particle", "fwd B/p", ">7.0f"),
     ("grad_B_per_particle", "grad B/p", ">8.0f"),
     ("compile_s", "compile s", ">9.1f"),
@@ -114,12 +130,38 @@ def fixed_configs(quick: bool = False) -> list[dict]:
     return [{**cfg, "substeps": substeps, "macro_steps": macro} for cfg in CONFIGS]
 
 
+def gpu_configs(quick: bool = False) -> list[dict]:
+    """``GPU_CONFIGS`` (``--quick``: the 30k block, 5 x 2)."""
+    if quick:
+        return [{**GPU_CONFIGS[0], "substeps": 5, "macro_steps": 2}]
+    return [dict(cfg) for cfg in GPU_CONFIGS]
+
+
+def particle_config(particles: int, quick: bool = False) -> dict:
+    """``--particles N``: one 3D float32 block of about N particles (``sized_grid``), 10 x 3 steps (``--quick``: 5 x 2)."""
+    substeps, macro = (5, 2) if quick else (10, 3)
+    return {**sized_grid(particles), "substeps": substeps, "macro_steps": macro}
+
+
+def expand(configs: list[dict], arch: str, threads: list[int] | None, scatters: list[str] | None) -> list[dict]:
+    """Every configuration on ``arch``, on each of ``threads`` (Taichi's CPU threads; None: its default)
+    and with each of ``scatters`` (None: the engine's choice), threads outermost."""
+    out = []
+    for n in threads or [None]:
+        for scatter in scatters or [None]:
+            extra = {"arch": arch} | ({"threads": n} if n else {}) | ({"scatter": scatter} if scatter else {})
+            out += [{**cfg, **extra} for cfg in configs]
+    return out
+
+
 def run_config(cfg: dict, interp: Interpreter | None = None) -> dict:
     """Measure one configuration in a fresh process of ``interp`` (default: this cosim); a RuntimeError
     with the child's stderr if it fails, or if it imported another cosim than ``interp``'s."""
     interp = interp or current_interpreter()
+    cfg = dict(cfg)
+    threads = cfg.pop("threads", None)  # a setting of the process, not of the measurement
     cmd = [interp.python, str(MEASURE), json.dumps(cfg)]
-    env = {**CACHE_ENV, **interp.env}
+    env = {**CACHE_ENV, **interp.env} | ({"COSIM_CPU_THREADS": str(threads)} if threads else {})
     res = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=interp.cosim_root, check=False)
     if res.returncode != 0:
         raise RuntimeError(f"{interp.label} run of {cfg} failed (exit {res.returncode}):\n{res.stderr[-2000:]}")
@@ -164,7 +206,8 @@ def run_throughput(out_dir: Path, configs: list[dict], name: str, command: str |
     for cfg in configs:
         rows.append({k: v for k, v in run_config(cfg).items() if k != "cosim"})
         r = rows[-1]
-        print(f"  done {r['dim']}D {r['precision']} {r['particles']:,}: {r['fwd_Mpss']:.2f} M/s forward", flush=True)
+        print(f"  done {r['dim']}D {r['precision']} {r['particles']:,} {r['arch']} {r['threads']} threads "
+              f"{r['scatter']}: {r['fwd_Mpss']:.2f} M/s forward", flush=True)  # fmt: skip
     print(f"\nMPM benchmark on {hardware_line()}; steps = substeps x macro steps, elastic block, dt 1e-4 s")
     print_table(rows, TABLE)
     write_csv(out_dir / f"{name}.csv", rows)

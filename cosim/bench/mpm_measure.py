@@ -14,7 +14,11 @@ The scene: an elastic block (E = 1e4 Pa, nu = 0.3, 1000 kg/m^3) of ``side``^dim 
 sampled at 2 per axis per cell (8 per cell in 3D, 4 in 2D), centred in a unit box of ``cells``
 cells per axis and 0.1 m below its centre, falling under gravity, dt = 1e-4 s. Prints one JSON
 line: rates in M particle-substeps/s (from the median macro step), memory in MiB and bytes per
-particle, times in s, and which ``cosim`` ran. With ``"profile": true`` (and Taichi's kernel profiler on, see
+particle, times in s, and which ``cosim`` ran. Optional keys: ``arch`` ("cpu" or "cuda"), ``scatter``
+(an ``MPMConfig.scatter``; only the current API has it), ``threads`` (Taichi's CPU threads: set by the
+parent through ``COSIM_CPU_THREADS``, read back here). On a GPU the process's RSS is not the device's
+memory: ``field_MiB`` (the engines' Taichi fields, adjoints included, from ``cosim.adjoint.memory``
+where the cosim has it) and ``device_MiB`` (``nvidia-smi``'s used memory after the runs) say it. With ``"profile": true`` (and Taichi's kernel profiler on, see
 ``cosim.runtime``) it also returns ms per substep of each kernel, forward and backward.
 """
 
@@ -44,7 +48,7 @@ def _peak_mib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
-def _engine(dim: int, cells: int, pts, substeps: int | None):
+def _engine(dim: int, cells: int, pts, substeps: int | None, scatter: str | None = None):
     """An MPM engine over the block; with gradients (``substeps`` per macro step) unless None."""
     import numpy as np
 
@@ -54,18 +58,48 @@ def _engine(dim: int, cells: int, pts, substeps: int | None):
     body = ParticleBody("block", "elastic", 1e4, 0.3, 1000.0, (0.5 * dx) ** dim, pts, np.zeros_like(pts))
     gravity = (0.0, -9.81) + (0.0,) * (dim - 2)
     grad = {} if substeps is None else {"requires_grad": True, "grad_substeps": substeps}
+    if scatter is not None:
+        grad["scatter"] = scatter
     return MPMEngine(MPMConfig(dim, (cells,) * dim, dx, gravity, **grad), [body])
 
 
 # ------------------------------------------------------------ the two engine APIs
-def _start_taichi(precision: str) -> None:
+def _start_taichi(precision: str, arch: str) -> None:
     """Taichi for a run with gradients (newer versions start float32 gradient runs optimised)."""
     import inspect
 
     from cosim.runtime import ensure_taichi
 
     grad = {"gradients": True} if "gradients" in inspect.signature(ensure_taichi).parameters else {}
-    ensure_taichi("cpu", precision, **grad)
+    ensure_taichi(arch, precision, **grad)
+
+
+def _threads() -> int:
+    """Taichi's CPU threads."""
+    from taichi.lang import impl
+
+    return int(impl.current_cfg().cpu_max_num_threads)
+
+
+def _field_mib(engine) -> float:
+    """The engine's Taichi fields with their adjoints [MiB], or NaN where the cosim cannot count them."""
+    try:
+        from cosim.adjoint.memory import taichi_field_bytes
+    except ImportError:
+        return float("nan")
+    return taichi_field_bytes([engine]) / 2**20
+
+
+def _device_mib(arch: str) -> float:
+    """Memory used on the GPU [MiB] (``nvidia-smi``), NaN on a CPU or without the tool."""
+    import shutil
+    import subprocess
+
+    if arch == "cpu" or shutil.which("nvidia-smi") is None:
+        return float("nan")
+    query = ["nvidia-smi", "--query-gpu=memory.used", "--format=csv,noheader,nounits"]
+    res = subprocess.run(query, capture_output=True, text=True, check=False)
+    return float(res.stdout.split()[0]) if res.returncode == 0 and res.stdout.strip() else float("nan")
 
 
 def _contract(engine) -> bool:
@@ -176,18 +210,28 @@ def _time_gradient(engine, substeps: int, macro_steps: int, profile: bool) -> tu
 
 
 def measure(
-    dim: int, cells: int, side: int, precision: str, substeps: int, macro_steps: int, profile: bool = False
+    dim: int,
+    cells: int,
+    side: int,
+    precision: str,
+    substeps: int,
+    macro_steps: int,
+    profile: bool = False,
+    arch: str = "cpu",
+    scatter: str | None = None,
 ) -> dict:
     """One configuration: forward alone, then a recorded forward and its backward (see the module docstring)."""
     import cosim
 
-    _start_taichi(precision)
+    _start_taichi(precision, arch)
     base = _peak_mib()
     pts = block_points(dim, cells, side)
     n = len(pts)
-    c_fwd, fwd_s, prof_fwd = _time_forward(_engine(dim, cells, pts, None), substeps, macro_steps, profile)
+    forward = _engine(dim, cells, pts, None, scatter)
+    c_fwd, fwd_s, prof_fwd = _time_forward(forward, substeps, macro_steps, profile)
     fwd_peak = _peak_mib()
-    c_grad, tape_s, bwd_s, prof_bwd = _time_gradient(_engine(dim, cells, pts, substeps), substeps, macro_steps, profile)
+    gradient = _engine(dim, cells, pts, substeps, scatter)
+    c_grad, tape_s, bwd_s, prof_bwd = _time_gradient(gradient, substeps, macro_steps, profile)
     peak = _peak_mib()
     work = n * substeps  # per macro step: the times are medians of a macro step
     return {
@@ -196,12 +240,18 @@ def measure(
         "grid": f"{cells}^{dim}",
         "particles": n,
         "steps": f"{substeps}x{macro_steps}",
+        "arch": arch,
+        "threads": _threads() if arch == "cpu" else 0,
+        "scatter": getattr(gradient, "scatter", "serial" if arch == "cpu" else "atomic"),
         "fwd_Mpss": work / fwd_s / 1e6,
         "fwd_bwd_Mpss": work / (tape_s + bwd_s) / 1e6,
         "bwd_fwd_ratio": bwd_s / tape_s,
+        "fb_over_fwd": (tape_s + bwd_s) / fwd_s,
         "peak_MiB": peak,
         "fwd_B_per_particle": (fwd_peak - base) * 2**20 / n,
         "grad_B_per_particle": (peak - fwd_peak) * 2**20 / n,
+        "field_MiB": _field_mib(forward) + _field_mib(gradient),
+        "device_MiB": _device_mib(arch),
         "compile_s": c_fwd + c_grad,
         "cosim": str(Path(cosim.__file__).parent),
         **({"profile": {"forward": prof_fwd, "backward": prof_bwd}} if profile else {}),

@@ -1,4 +1,4 @@
-"""`cosim bench mpm`'s modes (``cosim.bench.mpm``: throughput, sizes, profile;
+"""`cosim bench mpm`'s modes (``cosim.bench.mpm``: throughput, sizes, GPU, thread curve, profile;
 ``cosim.bench.mpm_baseline``: against another checkout), chosen from the command's flags."""
 
 from __future__ import annotations
@@ -6,29 +6,64 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from cosim.bench.mpm import GUARDS_OFF, fixed_configs, run_profile, run_throughput, size_configs
+from cosim.bench.mpm import (
+    GUARDS_OFF,
+    expand,
+    fixed_configs,
+    gpu_configs,
+    particle_config,
+    run_profile,
+    run_throughput,
+    size_configs,
+)
 from cosim.bench.mpm_baseline import run_baseline_bench
+from cosim.engines.arch import SCATTERS
+from cosim.errors import InputError
 from cosim.guards import announce
 
 
 def run_mpm_bench(
     out_dir: Path, quick: bool = False, sizes: bool = False, baseline: Path | None = None, repeat: int = 3,
-    profile: bool = False, command: str | None = None,
+    profile: bool = False, command: str | None = None, arch: str = "cpu", threads: list[int] | None = None,
+    scatters: list[str] | None = None, particles: int | None = None,
 ) -> int:  # fmt: skip
     """``cosim bench mpm``: the chosen mode (module docstring) into ``out_dir``; returns the exit code."""
-    if profile and (sizes or baseline is not None):
-        from cosim.errors import InputError
-
-        raise InputError("--profile runs alone (3D 64³ float32); leave out --sizes and --baseline")
+    check_mode(sizes, baseline, profile, arch, threads, scatters, particles)
     announce(GUARDS_OFF)
     out_dir.mkdir(parents=True, exist_ok=True)
-    configs = size_configs(quick) if sizes else fixed_configs(quick)
+    if particles:
+        configs, name = [particle_config(particles, quick)], "mpm_particles"
+    elif sizes:
+        configs, name = size_configs(quick), "mpm_sizes"
+    else:
+        configs, name = (gpu_configs(quick), "mpm") if arch != "cpu" else (fixed_configs(quick), "mpm")
+    name += "" if arch == "cpu" else f"_{arch}"
+    name += "_threads" if threads else ""
+    configs = expand(configs, arch, threads, scatters)
     try:
         if profile:
             return run_profile(out_dir, command=command)
         if baseline is not None:
-            return run_baseline_bench(out_dir, configs, baseline, repeat, "mpm_sizes" if sizes else "mpm", command)
-        return run_throughput(out_dir, configs, "mpm_sizes" if sizes else "mpm", command)
+            return run_baseline_bench(out_dir, configs, baseline, repeat, name, command)
+        return run_throughput(out_dir, configs, name, command)
     except RuntimeError as err:
         print(err, file=sys.stderr)
         return 1
+
+
+def check_mode(
+    sizes: bool, baseline: Path | None, profile: bool, arch: str, threads: list[int] | None,
+    scatters: list[str] | None, particles: int | None,
+) -> None:  # fmt: skip
+    """An InputError naming the flags that do not go together, or a scatter that does not exist."""
+    if profile and (sizes or baseline is not None or threads or scatters or particles or arch != "cpu"):
+        raise InputError("--profile runs alone (3D 64³ float32 on the CPU); leave out the other mpm flags")
+    if threads and arch != "cpu":
+        raise InputError(f"--threads sets CPU threads; --arch {arch} has none to set: leave one out")
+    if baseline is not None and (threads or scatters):
+        raise InputError("--baseline compares the default settings; leave out --threads and --scatter")
+    if sizes and particles:
+        raise InputError("--sizes and --particles both choose the sizes: give one")
+    unknown = sorted(set(scatters or ()) - set(SCATTERS))
+    if unknown:
+        raise InputError(f"--scatter {','.join(unknown)}: choose from {', '.join(SCATTERS)}")

@@ -15,7 +15,7 @@ from pathlib import Path
 from cosim.guards import GuardsOff
 
 # `cosim bench`'s defaults (``cosim.cli``): options left at them are not written into the command line
-DEFAULTS = {"out": "out/bench", "quick": False, "repeat": 3, "count": 200, "seed": 0, "steps": 10_000}
+DEFAULTS = {"out": "out/bench", "quick": False, "repeat": 3, "count": 200, "seed": 0, "steps": 10_000, "arch": "cpu"}
 
 
 def bench_command(what: str, **options) -> str:

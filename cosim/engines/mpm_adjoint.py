@@ -99,19 +99,20 @@ class MPMAdjointKernels(MPMKernels):
             self.add_at(out, g, base + offset, g_node, atomic)
 
     @ti.kernel
-    def _g2p_adjoint_scatter(self, scatter: ti.template(), src: ti.i32, dst: ti.i32, g: ti.i32, out: ti.template()):
+    def _g2p_adjoint_scatter(
+        self, scatter: ti.template(), src: ti.i32, dst: ti.i32, g: ti.i32, out: ti.template(), colour: ti.i32
+    ):
         """Adjoint of G2P (``_g2p_advect``) with respect to the velocities it gathered: scatter the new velocity's and
         affine field's adjoints onto ``out``: the grid velocity's adjoint (copy g) when G2P read the engine's
         own grid, else ``gathered_grad`` (``_gathered_grad_to_source`` hands it to the last grid hook).
         ``scatter`` as in ``_p2g`` (the coloured one over ``bin_particles``' lists of slot src)."""
-        if ti.static(scatter == "coloured"):
-            for colour in ti.static(range(self.colours)):
-                ti.loop_config(block_dim=1)  # a block per task: a colour has few
-                for i in range(self.colour_count[colour]):
-                    blk = self.colour_blocks[colour, i]
-                    first = self.block_start[blk]
-                    for k in range(first, first + self.block_count[blk]):
-                        self._g2p_adjoint_particle(self.bin_order[k], src, dst, g, out, False)
+        if ti.static(scatter == "coloured"):  # colour ``colour``'s blocks
+            ti.loop_config(block_dim=1)  # a block per task: a colour has few
+            for i in range(self.colour_count[colour]):
+                blk = self.colour_blocks[colour, i]
+                first = self.block_start[blk]
+                for k in range(first, first + self.block_count[blk]):
+                    self._g2p_adjoint_particle(self.bin_order[k], src, dst, g, out, False)
         else:
             ti.loop_config(serialize=scatter == "serial")
             for p in range(self.count[None]):
@@ -267,10 +268,10 @@ class MPMAdjointKernels(MPMKernels):
         self._g2p_adjoint_position(s, s + 1, s, self._grid_out)
         if self.scatter == "coloured":
             self.bin_particles(s, 0, self.n_particles)
-        if self._grid_out is self:  # no grid hook: straight onto the grid velocity's adjoint
-            self._g2p_adjoint_scatter(self.scatter, s, s + 1, s, self.grid_v.grad)
-        else:
-            self._g2p_adjoint_scatter(self.scatter, s, s + 1, s, self.gathered_grad)
+        out = self.grid_v.grad if self._grid_out is self else self.gathered_grad  # no grid hook: straight on
+        for colour in range(self.colours if self.scatter == "coloured" else 1):
+            self._g2p_adjoint_scatter(self.scatter, s, s + 1, s, out, colour)
+        if self._grid_out is not self:
             self._gathered_grad_to_source(s, self._grid_out)
         for hook in reversed(self.grid_hooks):
             hook.apply_grad(s, s, s, dt)

@@ -26,7 +26,8 @@ CHUNKS = 64  # runs of particles counted apart: at most this many threads count 
 
 @data_oriented
 class ParticleBins:
-    """Block lists of the particles (``bin_particles``), read by the coloured scatters of ``MPMKernels``."""
+    """Block lists of the particles (``bin_particles``), read by the coloured scatters of ``MPMKernels``, and
+    the scatters' add (``add_at``)."""
 
     def _init_bins(self) -> None:
         """Fields of the block lists, for the engine's ``nodes`` and ``capacity`` (a ``MPMKernels`` base)."""
@@ -48,6 +49,20 @@ class ParticleBins:
         self.bin_lo = field_pool.vector(self, d, ti.i32, shape=())  # the blocks reached: [bin_lo, bin_hi)
         self.bin_hi = field_pool.vector(self, d, ti.i32, shape=())
         self.bin_fill = field_pool.scalar(self, ti.i32, shape=())  # entries of bin_order placed so far
+
+    @ti.func
+    def add_at(self, fld: ti.template(), g, I, value, atomic: ti.template()):
+        """fld[g, I] += value (fld[I] for a field without grid copies): an atomic add, or a plain load and
+        store where no other thread writes the node (one thread, or a colour's blocks: ``mpm_bins``)."""
+        if ti.static(len(fld.shape) == self.dim):
+            if ti.static(atomic):
+                fld[I] += value
+            else:
+                fld[I] = fld[I] + value
+        elif ti.static(atomic):
+            fld[g, I] += value
+        else:
+            fld[g, I] = fld[g, I] + value
 
     @ti.func
     def block_index(self, J):

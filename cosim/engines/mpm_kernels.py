@@ -246,20 +246,6 @@ class MPMKernels(StencilFunctions, SlotIO, ParticleBins):
         return mom
 
     @ti.func
-    def add_at(self, fld: ti.template(), g, I, value, atomic: ti.template()):
-        """fld[g, I] += value (fld[I] for a field without grid copies): an atomic add, or a plain load and
-        store where no other thread writes the node (one thread, or a colour's blocks: ``mpm_bins``)."""
-        if ti.static(len(fld.shape) == self.dim):
-            if ti.static(atomic):
-                fld[I] += value
-            else:
-                fld[I] = fld[I] + value
-        elif ti.static(atomic):
-            fld[g, I] += value
-        else:
-            fld[g, I] = fld[g, I] + value
-
-    @ti.func
     def _p2g_particle(self, b, p, src, g, control_share, atomic: ti.template()):
         """Scatter particle p's mass and momentum onto its stencil (of body b); returns its base node."""
         m_p = self.p_mass[b]
@@ -284,6 +270,7 @@ class MPMKernels(StencilFunctions, SlotIO, ParticleBins):
         g: ti.i32,
         control_share: float,
         first_body: ti.i32,
+        colour: ti.i32,
     ):
         """Scatter mass and momentum, and bound the nodes written: the box [active_lo, active_hi) of grid
         copy g, which the grid passes loop over (a body usually covers a small part of the domain: the
@@ -291,7 +278,8 @@ class MPMKernels(StencilFunctions, SlotIO, ParticleBins):
         body's scatter, widened by ``box_margin`` nodes on every side (a grid hook reading a node's
         neighbours asks for it) within the grid. ``scatter`` (``SCATTERS``): "serial", one thread with plain
         adds and min / max; "coloured", the blocks ``bin_particles`` listed, a colour at a time, each block's
-        particles in index order on one thread with plain adds (the box from the binning); "atomic", every
+        particles in index order on one thread with plain adds, a launch per ``colour`` (one compiled copy of
+        the scatter, not 2^d; the box from the binning); "atomic", every
         particle in parallel with atomic adds. The adjoint (``cosim.engines.mpm_adjoint``) is a parallel gather."""
         margin = ti.static(self.box_margin)
         bounded = ti.static(self.bounded_grid)  # else the box stays the whole grid (``arch``)
@@ -300,16 +288,16 @@ class MPMKernels(StencilFunctions, SlotIO, ParticleBins):
                 self.active_lo[g] = ti.Vector(self.nodes)
                 self.active_hi[g] = ti.Vector.zero(ti.i32, self.dim)
         if ti.static(scatter == "coloured"):
-            if ti.static(bounded):
-                ti.atomic_min(self.active_lo[g], self.reach_lo[None] - margin)
-                ti.atomic_max(self.active_hi[g], self.reach_hi[None] + 2 + margin)
-            for colour in ti.static(range(self.colours)):
-                ti.loop_config(block_dim=1)  # a block per task: a colour has few
-                for i in range(self.colour_count[colour]):
-                    blk = self.colour_blocks[colour, i]
-                    first = self.block_start[blk]
-                    for k in range(first, first + self.block_count[blk]):
-                        self._p2g_particle(b, self.bin_order[k], src, g, control_share, False)
+            if ti.static(bounded):  # noqa: SIM102 (a compile-time test)
+                if colour == 0:
+                    ti.atomic_min(self.active_lo[g], self.reach_lo[None] - margin)
+                    ti.atomic_max(self.active_hi[g], self.reach_hi[None] + 2 + margin)
+            ti.loop_config(block_dim=1)  # a block per task: a colour has few
+            for i in range(self.colour_count[colour]):
+                blk = self.colour_blocks[colour, i]
+                first = self.block_start[blk]
+                for k in range(first, first + self.block_count[blk]):
+                    self._p2g_particle(b, self.bin_order[k], src, g, control_share, False)
         else:
             ti.loop_config(serialize=scatter == "serial")
             for p in range(start, end):
@@ -428,9 +416,12 @@ class MPMKernels(StencilFunctions, SlotIO, ParticleBins):
             hook.apply(src, g, s, dt)
         for b, (mat, (lo, hi)) in enumerate(zip(self.materials, self.ranges)):
             self._stress(mat, b, lo, hi, src, g, dt)
-            if self.scatter == "coloured":
+            if self.scatter == "coloured":  # a launch per colour: the colours in turn
                 self.bin_particles(src, lo, hi)
-            self._p2g(self.scatter, b, lo, hi, src, g, control_share, b == 0)
+                for colour in range(self.colours):
+                    self._p2g(self.scatter, b, lo, hi, src, g, control_share, b == 0 and colour == 0, colour)
+            else:
+                self._p2g(self.scatter, b, lo, hi, src, g, control_share, b == 0, 0)
 
     def coupling(self, src: int, s: int, dt: float) -> None:
         """Grid update (velocities, gravity, walls), then the grid hooks in the order attached."""
