@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 from cosim.bench.mpm import FILL, SIZES, sized_grid
@@ -19,3 +21,40 @@ def test_sized_grid_keeps_8_particles_per_cell():
         assert abs(np.median(counts[counts > 0]) / 8 - 1) < 0.1, cfg  # a cell inside holds 2 x 2 x 2
         span = np.ptp(pts, axis=0).max() + 0.5 / cfg["cells"]  # [m] the block's side; the domain's is 1
         assert abs(span / FILL - 1) < 0.1, cfg  # the same share of the domain at every size
+
+
+def test_the_gpu_sizes_are_30k_250k_and_2m_particles():
+    from cosim.bench.mpm import GPU_CONFIGS
+
+    counts = [len(block_points(3, c["cells"], c["side"])) for c in GPU_CONFIGS]
+    for got, want in zip(counts, [30_000, 250_000, 2_000_000], strict=True):
+        assert abs(got / want - 1) < 0.05, counts
+
+
+def test_each_configuration_runs_on_each_thread_count_and_scatter():
+    from cosim.bench.mpm import expand, fixed_configs
+
+    configs = fixed_configs(quick=True)
+    rows = expand(configs, "cpu", [1, 16], ["serial", "coloured"])
+    assert len(rows) == 4 * len(configs)
+    assert [(r["threads"], r["scatter"]) for r in rows[:: len(configs)]] == [
+        (1, "serial"), (1, "coloured"), (16, "serial"), (16, "coloured")
+    ]  # fmt: skip
+    assert all("threads" not in r and "scatter" not in r for r in expand(configs, "cuda", None, None))
+
+
+def test_mpm_flags_that_do_not_go_together_are_refused_by_name():
+    import pytest
+
+    from cosim.bench import run_bench
+    from cosim.bench.mpm_modes import check_mode
+    from cosim.errors import InputError
+
+    with pytest.raises(InputError, match="--threads sets CPU threads; --arch cuda"):
+        check_mode(False, None, False, "cuda", [1, 2], None, None)
+    with pytest.raises(InputError, match="--scatter fast: choose from serial, coloured, atomic"):
+        check_mode(False, None, False, "cpu", None, ["serial", "fast"], None)
+    with pytest.raises(InputError, match="--sizes and --particles"):
+        check_mode(True, None, False, "cpu", None, None, 1000)
+    with pytest.raises(InputError, match="options of `bench mpm`, not of `bench contact`"):
+        run_bench("contact", Path("unused"), threads=[2])

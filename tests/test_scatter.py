@@ -50,6 +50,35 @@ def test_the_coloured_scatter_hands_the_grid_every_particles_mass_and_momentum_o
     np.testing.assert_allclose(grids["coloured"], grids["serial"], rtol=0, atol=1e-13 * scale)
 
 
+def test_every_particle_stays_listed_in_a_block_its_stencil_is_within_drift_of():
+    """The block lists stand while each particle's stencil base is within ``DRIFT`` cells of its listed
+    block (what keeps one colour's stencils apart): after moves of a tenth of a cell up to three cells,
+    every particle is listed in such a block, and each block's particles in ascending index."""
+    from cosim.engines.mpm_bins import BLOCK, DRIFT
+
+    mpm = engine("coloured")
+    rng = np.random.default_rng(5)
+    x0 = mpm.state()["x"]
+    rebuilt = []
+    for shift in (0.1, 0.5, 1.5, 0.2, 3.0):
+        state = mpm.state()
+        state["x"] = np.clip(x0 + rng.uniform(-shift, shift, x0.shape) * DX, 0.0, 1.0)
+        mpm.set_state(state)
+        before = mpm.block_of.to_numpy()[: mpm.n_particles].copy()
+        mpm.bin_particles(mpm.slot, 0, mpm.n_particles)
+        listed = mpm.block_of.to_numpy()[: mpm.n_particles]
+        rebuilt.append(not np.array_equal(before, listed))
+        base = np.clip((state["x"] / DX - 0.5).astype(int), 0, CELLS + 1 - 3)
+        corner = np.stack(np.unravel_index(listed, mpm.bin_blocks), axis=-1) * BLOCK
+        assert np.all((base >= corner - DRIFT) & (base < corner + BLOCK + DRIFT)), shift
+        order, start, count = mpm.bin_order.to_numpy(), mpm.block_start.to_numpy(), mpm.block_count.to_numpy()
+        for blk in np.unique(listed):
+            members = order[start[blk] : start[blk] + count[blk]]
+            assert np.array_equal(members, np.flatnonzero(listed == blk)), blk
+    # first lists; kept through moves within a cell of where they were made; rebuilt after larger ones
+    assert rebuilt[:3] == [True, False, True] and rebuilt[4], rebuilt
+
+
 def test_the_scatters_agree_forward_and_backward_and_the_coloured_one_repeats_bit_for_bit():
     """Three substeps and their adjoint (a random seed on every key) by each scatter: the same to round-off
     (relative 1e-11); the coloured scatter run twice gives the same bits."""

@@ -53,9 +53,9 @@ class ArchChoices:
 
 def choices_for(arch: str, threads: int = 1) -> ArchChoices:
     """The choices for ``arch`` ('cpu' or Taichi's 'x64', 'arm64'; 'cuda', 'gpu', 'vulkan', ...), on a CPU
-    with Taichi's ``threads``: the coloured scatter costs one thread about a third more than the serial
-    one (its binning, its colours' passes) and gains with every thread, so it is the default from
-    ``COLOURED_MIN_THREADS`` on."""
+    with Taichi's ``threads``: the coloured scatter costs one thread more than the serial one (its
+    binning, its colours' passes) and gains with every thread, so it is the default from
+    ``COLOURED_MIN_THREADS`` on (``cosim bench mpm --threads ... --scatter serial,coloured``)."""
     if arch in CPU_ARCHES:
         scatter = "coloured" if threads >= COLOURED_MIN_THREADS else "serial"
         return ArchChoices(scatter, PARALLEL_MIN_PARTICLES, PARALLEL_MIN_NODES, bounded_grid_passes=True)

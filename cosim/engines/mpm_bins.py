@@ -22,6 +22,7 @@ from cosim.engines.data_oriented import data_oriented
 
 BLOCK = 4  # grid cells per block and axis (at least 2 keeps same-coloured blocks' stencils apart)
 CHUNKS = 64  # runs of particles counted apart: at most this many threads count and place at once
+DRIFT = (BLOCK - 2) // 2  # [cells] how far a particle's stencil base may leave its listed block
 
 
 @data_oriented
@@ -49,6 +50,8 @@ class ParticleBins:
         self.bin_lo = field_pool.vector(self, d, ti.i32, shape=())  # the blocks reached: [bin_lo, bin_hi)
         self.bin_hi = field_pool.vector(self, d, ti.i32, shape=())
         self.bin_fill = field_pool.scalar(self, ti.i32, shape=())  # entries of bin_order placed so far
+        self.bin_moved = field_pool.scalar(self, ti.i32, shape=())  # chunks with a particle out of its block
+        self._binned = None  # the particle range the lists hold
 
     @ti.func
     def add_at(self, fld: ti.template(), g, I, value, atomic: ti.template()):
@@ -87,38 +90,74 @@ class ParticleBins:
         lo = ti.min(start + c * length, end)
         return lo, ti.min(lo + length, end)
 
+    @ti.func
+    def block_coords(self, blk):
+        """Block coordinates J of linear block index blk (``block_index``'s inverse)."""
+        J = ti.Vector.zero(ti.i32, self.dim)
+        rest = blk
+        for k in ti.static(range(self.dim - 1, -1, -1)):
+            J[k] = rest % self.bin_blocks[k]
+            rest //= self.bin_blocks[k]
+        return J
+
     def bin_particles(self, src: int, start: int, end: int) -> None:
-        self._bin_count(src, start, end)
-        self._bin_place(start, end)
+        """Block lists of the particles [start, end) in slot src, and the base nodes they reach
+        (``reach_lo``, ``reach_hi``). The lists of the last call stand while they hold the same range and
+        every particle's stencil base is still within ``DRIFT`` cells of its listed block: blocks of one
+        colour are ``BLOCK`` cells apart, so stencils that far out still never share a node."""
+        moved = self._bin_check(src, start, end, int(self._binned != (start, end)))
+        if moved:
+            self._bin_count(src, start, end)
+            self._bin_place(start, end)
+            self._binned = (start, end)
 
     @ti.kernel
-    def _bin_count(self, src: ti.i32, start: ti.i32, end: ti.i32):
-        """List the blocks' particles of [start, end) in slot src: ``colour_blocks`` (the non-empty blocks
-        of each colour, ``colour_count`` of them), each block's entries [``block_start``,
-        ``block_start`` + ``block_count``) of ``bin_order`` (its particles in ascending index)."""
+    def _bin_check(self, src: ti.i32, start: ti.i32, end: ti.i32, fresh: ti.i32) -> ti.i32:
+        """The base nodes the particles reach and the blocks those lie in (``bin_lo``, ``bin_hi``); returns
+        how many particles have drifted more than ``DRIFT`` cells out of their listed block (``fresh``: the
+        lists are not of this range, every particle counts as moved)."""
         d = ti.static(self.dim)
         self.reach_lo[None] = ti.Vector(self.nodes)
         self.reach_hi[None] = ti.Vector.zero(ti.i32, d)
+        self.bin_moved[None] = 0
         ti.loop_config(block_dim=1)  # a chunk per task (Taichi's CPU tasks take 32 iterations by default)
-        for c in range(CHUNKS):  # count per chunk and block; the base nodes reached
+        for c in range(CHUNKS):
             lo, hi = self.chunk_range(c, start, end)
             reached_lo = ti.Vector(self.nodes)
             reached_hi = ti.Vector.zero(ti.i32, d)
+            moved = 0
             for p in range(lo, hi):
                 base = self.stencil_base(self.x[src, p])
                 reached_lo = ti.min(reached_lo, base)
                 reached_hi = ti.max(reached_hi, base + 1)
-                blk = self.block_index(base // BLOCK)
-                self.block_of[p] = blk
-                self.chunk_cursor[c, blk] = self.chunk_cursor[c, blk] + 1  # this chunk's own column
+                corner = self.block_coords(self.block_of[p]) * BLOCK
+                for k in ti.static(range(d)):
+                    if base[k] < corner[k] - DRIFT or base[k] >= corner[k] + BLOCK + DRIFT:
+                        moved = 1
             if hi > lo:
                 ti.atomic_min(self.reach_lo[None], reached_lo)
                 ti.atomic_max(self.reach_hi[None], reached_hi)
+                self.bin_moved[None] += moved + fresh
         self.bin_lo[None] = self.reach_lo[None] // BLOCK
         self.bin_hi[None] = (self.reach_hi[None] - 1) // BLOCK + 1
+        return self.bin_moved[None]
+
+    @ti.kernel
+    def _bin_count(self, src: ti.i32, start: ti.i32, end: ti.i32):
+        """Count the particles of [start, end) in slot src per chunk and block."""
+        ti.loop_config(block_dim=1)
+        for c in range(CHUNKS):
+            lo, hi = self.chunk_range(c, start, end)
+            for p in range(lo, hi):
+                blk = self.block_index(self.stencil_base(self.x[src, p]) // BLOCK)
+                self.block_of[p] = blk
+                self.chunk_cursor[c, blk] = self.chunk_cursor[c, blk] + 1  # this chunk's own column
 
     @ti.kernel
     def _bin_place(self, start: ti.i32, end: ti.i32):
+        """From the counts, list the blocks' particles: ``colour_blocks`` (the non-empty blocks of each
+        colour, ``colour_count`` of them), each block's entries [``block_start``, ``block_start`` +
+        ``block_count``) of ``bin_order`` (its particles in ascending index)."""
         d = ti.static(self.dim)
         for J in ti.grouped(ti.ndrange(*[(self.bin_lo[None][k], self.bin_hi[None][k]) for k in ti.static(range(d))])):
             blk = self.block_index(J)  # counts -> each chunk's first place within the block
