@@ -59,9 +59,10 @@ def test_the_contact_benchmark_says_it_runs_without_the_energy_and_tunnelling_gu
 def test_the_mpm_benchmark_says_its_engine_runs_without_the_runners_checks(tmp_path, monkeypatch, capsys):
     from cosim.bench import mpm, run_bench
 
-    row = {"dim": 2, "precision": "float32", "grid": "32^2", "particles": 100, "steps": 10, "fwd_Mpss": 1.0,
-           "fwd_bwd_Mpss": 0.5, "bwd_fwd_ratio": 2.0, "peak_MiB": 100.0, "fwd_B_per_particle": 1.0,
-           "grad_B_per_particle": 2.0, "compile_s": 1.0}  # fmt: skip
+    row = {"dim": 2, "precision": "float32", "grid": "32^2", "particles": 100, "steps": 10, "arch": "cpu",
+           "threads": 2, "scatter": "serial", "fwd_Mpss": 1.0, "fwd_bwd_Mpss": 0.5, "bwd_fwd_ratio": 2.0,
+           "fb_over_fwd": 3.0, "peak_MiB": 100.0, "field_MiB": 10.0, "device_MiB": float("nan"),
+           "fwd_B_per_particle": 1.0, "grad_B_per_particle": 2.0, "compile_s": 1.0}  # fmt: skip
     monkeypatch.setattr(mpm, "run_config", lambda cfg, interp=None: dict(row))
     out = tmp_path / "bench"
     assert run_bench("mpm", out, quick=True) == 0

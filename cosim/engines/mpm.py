@@ -226,6 +226,7 @@ class MPMEngine(MPMAdjointKernels):
         """``substeps`` substeps of ``dt`` seconds with the boundaries as written; returns the step's token.
         The bare stepping under ``step`` (benchmarks use it to time the kernels alone)."""
         self._set_control(impulse)
+        self._binned = None  # block lists made afresh: a step's sums depend on its start state alone
         share = 1.0 / substeps
         if self.cfg.requires_grad:
             if substeps > self.cfg.grad_substeps:
@@ -262,9 +263,11 @@ class MPMEngine(MPMAdjointKernels):
         self._write_boundaries(record.boundaries)  # the step's boundary, for its backward (and recompute)
         if record.token != self._resident:
             self.set_state(record.state)
+            self._binned = None  # as the forward's ``advance`` began: the recompute repeats it bit for bit
             for s in range(K):
                 self._substep(s, s + 1, dt, share, s)
             self._slot = K
+        self._binned = None  # the backward's lists made afresh too, whether or not it recomputed
         self._zero_grad()
         for k in STATE_KEYS:  # before the reactions': a source's added mass adds to the end state's adjoint
             self._put(getattr(self, k).grad, K, grad_outputs["state"][k])

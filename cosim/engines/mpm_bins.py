@@ -51,7 +51,7 @@ class ParticleBins:
         self.bin_hi = field_pool.vector(self, d, ti.i32, shape=())
         self.bin_fill = field_pool.scalar(self, ti.i32, shape=())  # entries of bin_order placed so far
         self.bin_moved = field_pool.scalar(self, ti.i32, shape=())  # chunks with a particle out of its block
-        self._binned = None  # the particle range the lists hold
+        self._binned = None  # the particle range the lists hold (None: none, make them afresh)
 
     @ti.func
     def add_at(self, fld: ti.template(), g, I, value, atomic: ti.template()):
@@ -104,7 +104,9 @@ class ParticleBins:
         """Block lists of the particles [start, end) in slot src, and the base nodes they reach
         (``reach_lo``, ``reach_hi``). The lists of the last call stand while they hold the same range and
         every particle's stencil base is still within ``DRIFT`` cells of its listed block: blocks of one
-        colour are ``BLOCK`` cells apart, so stencils that far out still never share a node."""
+        colour are ``BLOCK`` cells apart, so stencils that far out still never share a node. The engine
+        forgets the lists (``_binned = None``) where a macro step or its backward begins, so that what a
+        step sums, and in which order, follows from its start state alone (a recompute repeats it)."""
         moved = self._bin_check(src, start, end, int(self._binned != (start, end)))
         if moved:
             self._bin_count(src, start, end)

@@ -273,14 +273,12 @@ class MPMKernels(StencilFunctions, SlotIO, ParticleBins):
         colour: ti.i32,
     ):
         """Scatter mass and momentum, and bound the nodes written: the box [active_lo, active_hi) of grid
-        copy g, which the grid passes loop over (a body usually covers a small part of the domain: the
-        benchmark's 30k-particle block touches ~7k of a 64³ grid's 274k nodes), started afresh by the first
-        body's scatter, widened by ``box_margin`` nodes on every side (a grid hook reading a node's
-        neighbours asks for it) within the grid. ``scatter`` (``SCATTERS``): "serial", one thread with plain
-        adds and min / max; "coloured", the blocks ``bin_particles`` listed, a colour at a time, each block's
-        particles in index order on one thread with plain adds, a launch per ``colour`` (one compiled copy of
-        the scatter, not 2^d; the box from the binning); "atomic", every
-        particle in parallel with atomic adds. The adjoint (``cosim.engines.mpm_adjoint``) is a parallel gather."""
+        copy g, which the grid passes loop over (a body usually covers a small part of the domain), started
+        afresh by the first body's scatter, widened by ``box_margin`` nodes on every side (a grid hook
+        reading a node's neighbours asks for it) within the grid. ``scatter`` (``SCATTERS``): "serial", one
+        thread with plain adds and min / max; "coloured", colour ``colour``'s blocks (``bin_particles``), each
+        block's particles in index order on one thread with plain adds (a launch per colour: one compiled
+        copy, not 2^d); "atomic", every particle in parallel with atomic adds. The adjoint is a gather."""
         margin = ti.static(self.box_margin)
         bounded = ti.static(self.bounded_grid)  # else the box stays the whole grid (``arch``)
         if ti.static(bounded):  # noqa: SIM102 (a compile-time test: Taichi cannot join it with a run-time one)
@@ -416,12 +414,10 @@ class MPMKernels(StencilFunctions, SlotIO, ParticleBins):
             hook.apply(src, g, s, dt)
         for b, (mat, (lo, hi)) in enumerate(zip(self.materials, self.ranges)):
             self._stress(mat, b, lo, hi, src, g, dt)
-            if self.scatter == "coloured":  # a launch per colour: the colours in turn
+            if self.scatter == "coloured":
                 self.bin_particles(src, lo, hi)
-                for colour in range(self.colours):
-                    self._p2g(self.scatter, b, lo, hi, src, g, control_share, b == 0 and colour == 0, colour)
-            else:
-                self._p2g(self.scatter, b, lo, hi, src, g, control_share, b == 0, 0)
+            for colour in range(self.colours if self.scatter == "coloured" else 1):  # a launch per colour, in turn
+                self._p2g(self.scatter, b, lo, hi, src, g, control_share, b == 0 and colour == 0, colour)
 
     def coupling(self, src: int, s: int, dt: float) -> None:
         """Grid update (velocities, gravity, walls), then the grid hooks in the order attached."""
