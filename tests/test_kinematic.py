@@ -86,3 +86,28 @@ def test_point_velocity_is_the_rigid_motion_of_a_body_point(dim):
     t, eps = 0.8, 1e-6
     x = lambda tt: m.pose(tt)[0] + m.pose(tt)[1] @ r_body
     assert np.allclose(m.point_velocity(t, x(t)), (x(t + eps) - x(t - eps)) / (2 * eps), atol=1e-7)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_a_repeated_spinning_cycle_poses_as_its_summed_twists(dim):
+    """A cycle of three segments with spin about one axis (so turns add as angles), repeated: the pose
+    after many cycles is p0 + sum v_j tau_j and the rotation by sum w_j tau_j, tau_j the time spent in
+    segment j so far, whatever the cycle's shift and turn are cached as (``Motion._cycle``)."""
+    rng = np.random.default_rng(4)
+    durations = [0.13, 0.31, 0.07]
+    velocities = rng.normal(size=(3, dim))
+    spins = rng.normal(size=3)
+    axis = np.array([0.0, 0.0, 1.0])
+    segments = [Segment(d, v, float(w) if dim == 2 else w * axis) for d, v, w in zip(durations, velocities, spins)]
+    p0 = rng.normal(size=dim)
+    motion = Motion("piecewise", p0, np.eye(dim), segments, repeat=True)
+    period = sum(durations)
+    for t in [0.0, 0.2, 3.7, 41.05, 123.456]:
+        cycles, rest = divmod(t, period)
+        spent = np.array([cycles * d + min(max(rest - sum(durations[:j]), 0.0), d) for j, d in enumerate(durations)])
+        p, R = motion.pose(t)
+        np.testing.assert_allclose(p, p0 + spent @ velocities, rtol=0, atol=1e-9)
+        angle = spent @ spins
+        want = rotation_about(angle if dim == 2 else angle * axis, 1.0, dim)
+        np.testing.assert_allclose(R, want, rtol=0, atol=1e-9)
+        check_twist_is_pose_derivative(motion, [t + 1e-3])

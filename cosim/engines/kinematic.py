@@ -24,6 +24,7 @@ Motions (all start from the initial pose ``p0``, ``R0``):
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 
@@ -85,6 +86,19 @@ class Motion:
         return 0.0 if self.dim == 2 else np.zeros(3)
 
     # -------------------------------------------------------------- segments
+    def _segment_index(self, t: float) -> tuple[int, float, int]:
+        """Index of the segment holding t (``len(segments)``: after the last, at rest), the time into it
+        and the whole cycles of ``repeat`` before it."""
+        period, cycles = self._cycle[0], 0
+        if self.repeat and 0 < period < math.inf:
+            cycles = math.floor(t / period)
+            t -= cycles * period
+        for i, seg in enumerate(self.segments):
+            if t < seg.duration:
+                return i, t, cycles
+            t -= seg.duration
+        return len(self.segments), t, cycles
+
     def _segment_at(self, t: float) -> tuple[int, float, np.ndarray, np.ndarray]:
         """Index of the segment holding t, time into it, and the pose at its start.
 
@@ -92,19 +106,41 @@ class Motion:
         are world-frame, so a whole cycle of ``repeat`` shifts by the same
         translation and left-multiplies by the same rotation every time.
         """
-        p, R = self.p0.astype(np.float64), self.R0.astype(np.float64)
+        i, tau, cycles = self._segment_index(t)
+        _, shift, turn = self._cycle
+        p = self.p0.astype(np.float64) + cycles * shift
+        R = self.R0.astype(np.float64)
+        if cycles and turn is not None:
+            R = np.linalg.matrix_power(turn, cycles) @ R
+        if i < len(self.segments):
+            start_p, start_R = self._starts[i]
+        elif self.segments:  # after the last segment: its end
+            last = self.segments[-1]
+            start_p, start_R = self._advance_one(*self._starts[-1], last, last.duration)
+        else:
+            start_p, start_R = np.zeros(self.dim), np.eye(self.dim)
+        return i, tau, p + start_p, start_R @ R
+
+    @functools.cached_property
+    def _cycle(self) -> tuple[float, np.ndarray, np.ndarray | None]:
+        """The segments' total duration [s], and the translation and rotation (None: none) one whole
+        cycle of them makes (world-frame twists: every cycle shifts and turns alike). Computed once: a
+        shaken container asks for its pose at every substep."""
         period = sum(seg.duration for seg in self.segments)
-        if self.repeat and 0 < period < math.inf:
-            cycles = math.floor(t / period)
-            shift, turn = self._advance(np.zeros(self.dim), np.eye(self.dim), period)
-            p, R = p + cycles * shift, np.linalg.matrix_power(turn, cycles) @ R
-            t -= cycles * period
-        for i, seg in enumerate(self.segments):
-            if t < seg.duration:
-                return i, t, p, R
-            p, R = self._advance_one(p, R, seg, seg.duration)
-            t -= seg.duration
-        return len(self.segments), t, p, R
+        shift, turn = self._advance(np.zeros(self.dim), np.eye(self.dim), period) if period < math.inf else (0, 0)
+        no_turn = period == math.inf or np.allclose(turn, np.eye(self.dim), rtol=0, atol=0)
+        return period, shift, None if no_turn else turn
+
+    @functools.cached_property
+    def _starts(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Each segment's start as a displacement and rotation from the cycle's start: the pose at a
+        segment's start is (p + dp, dR R) for the cycle's start pose (p, R)."""
+        dp, dR, out = np.zeros(self.dim), np.eye(self.dim), []
+        for seg in self.segments:
+            out.append((dp, dR))
+            if seg.duration < math.inf:
+                dp, dR = self._advance_one(dp, dR, seg, seg.duration)
+        return out
 
     @staticmethod
     def _advance_one(p, R, seg: Segment, dt: float):
@@ -135,7 +171,7 @@ class Motion:
     def twist(self, t: float) -> tuple[np.ndarray, np.ndarray | float]:
         """Linear velocity (d,) of the body origin and angular velocity (world frame) at time t."""
         if self.kind in ("constant", "piecewise"):
-            i, _, _, _ = self._segment_at(t)
+            i, _, _ = self._segment_index(t)
             if i < len(self.segments):
                 seg = self.segments[i]
                 return np.asarray(seg.velocity, dtype=np.float64), seg.angular_velocity
