@@ -74,6 +74,7 @@ TABLE = [
     ("threads", "threads", ">7"),
     ("scatter", "scatter", ">8"),
     ("fwd_Mpss", "fwd M/s", ">8.2f"),
+    ("fwd_GBps", "fwd GB/s", ">8.1f"),
     ("fwd_bwd_Mpss", "f+b M/s", ">8.3f"),
     ("bwd_fwd_ratio", "bwd/fwd", ">7.2f"),
     ("fb_over_fwd", "f+b/fwd", ">7.2f"),
@@ -198,6 +199,16 @@ def write_csv(path: Path, rows: list[dict]) -> None:
     print(f"wrote {path}")
 
 
+def particle_bytes(dim: int, precision: str) -> int:
+    """Bytes of particle arrays one forward substep moves per particle (one body, no hooks): the stress
+    reads F and C and writes the affine momentum (3 d^2 floats), P2G reads x, v and that affine part
+    (2 d + d^2), G2P with the advection reads x and F and writes x, v, C and F (3 d + 3 d^2). The grid's
+    nodes (an eighth as many as the particles in 3D at 8 per cell) are left out: a particle's stencil
+    mostly hits what its neighbours brought into cache. Times the forward rate: the memory bandwidth the
+    forward would need if it were bound by it (``fwd_GBps``), against the machine's peak."""
+    return (7 * dim * dim + 5 * dim) * (4 if precision == "float32" else 8)
+
+
 def run_throughput(out_dir: Path, configs: list[dict], name: str, command: str | None = None) -> int:
     """Every configuration in its own process; prints a table and writes ``out_dir/<name>.csv`` and ``<name>.md``."""
     from cosim.hardware import hardware_line
@@ -206,6 +217,7 @@ def run_throughput(out_dir: Path, configs: list[dict], name: str, command: str |
     for cfg in configs:
         rows.append({k: v for k, v in run_config(cfg).items() if k != "cosim"})
         r = rows[-1]
+        r["fwd_GBps"] = r["fwd_Mpss"] * 1e6 * particle_bytes(r["dim"], r["precision"]) / 1e9
         print(f"  done {r['dim']}D {r['precision']} {r['particles']:,} {r['arch']} {r['threads']} threads "
               f"{r['scatter']}: {r['fwd_Mpss']:.2f} M/s forward", flush=True)  # fmt: skip
     print(f"\nMPM benchmark on {hardware_line()}; steps = substeps x macro steps, elastic block, dt 1e-4 s")

@@ -96,7 +96,7 @@ class MPMEngine(MPMAdjointKernels):
         start of each substep's adjoint. Methods: ``apply(src, g, s, dt)`` for substep s of the
         macro step, particles in slot src, grid copy g; ``apply_grad(src, g, s, dt)``;
         ``zero_grad()`` (its own adjoints only). Its grid passes loop over grid copy g's box
-        [``active_lo[g]``, ``active_hi[g]``), the nodes the particles reach (``_clear_grid``); a hook
+        [``active_lo[g]``, ``active_hi[g]``), the nodes the particles reach (``_clear_box``); a hook
         that reads or writes nodes up to k beyond them sets ``hook.box_margin = k``.
         """
         self._check_unspecialised("grid hooks")

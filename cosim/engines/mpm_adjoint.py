@@ -247,7 +247,7 @@ class MPMAdjointKernels(MPMKernels):
 
     @ti.kernel
     def _zero_grid_grad(self, g: ti.i32):
-        """Zero grid copy g's adjoints, and its grid hooks' (``grid_adjoints``), over its box (``_clear_grid``):
+        """Zero grid copy g's adjoints, and its grid hooks' (``grid_adjoints``), over its box (``_clear_box``):
         only its nodes are read and
         written by its substep's adjoint, so no fill of all K grids."""
         ti.loop_config(serialize=self.serial_grid_loops)

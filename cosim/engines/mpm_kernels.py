@@ -32,6 +32,7 @@ from cosim.engines.data_oriented import data_oriented
 from cosim.engines.materials import MATERIALS
 from cosim.engines.mpm_bins import ParticleBins
 from cosim.engines.mpm_inputs import MPMConfig, ParticleBody, particle_capacity
+from cosim.engines.mpm_p2g import P2GKernels
 from cosim.engines.mpm_slot_io import SlotIO
 from cosim.engines.mpm_stencil import StencilFunctions, stencil_rows
 from cosim.engines.mpm_watch import ParticleWatch
@@ -41,7 +42,7 @@ WALL_SOFT = 1e-4  # [m/s] the domain walls' removal of an approach is rounded ov
 
 
 @data_oriented
-class MPMKernels(StencilFunctions, SlotIO, ParticleBins):
+class MPMKernels(StencilFunctions, SlotIO, ParticleBins, P2GKernels):
     """Fields, kernels and substep phases of the MPM; hooks and the contract live in ``MPMEngine``."""
 
     def __init__(self, config: MPMConfig, bodies: list[ParticleBody]):
@@ -128,7 +129,7 @@ class MPMKernels(StencilFunctions, SlotIO, ParticleBins):
         self.bounded_grid = choices.bounded_grid_passes  # else every grid pass covers the whole grid (GPU)
         if not self.bounded_grid:
             self.active_hi.from_numpy(np.tile(np.array(self.nodes, dtype=np.int32), (self.n_grids, 1)))
-        # the grid passes cover the particles' box (``_clear_grid``), which few particles keep small: a
+        # the grid passes cover the particles' box (``_clear_box``), which few particles keep small: a
         # small engine's grid loops are serial on any grid (a thread-pool dispatch per pass would cost more than
         # the pass). Few particles spread over a large grid would make them slower than parallel.
         self.serial_grid_loops = choices.serial_nodes(int(np.prod(self.nodes))) or self.serial_particle_loops
@@ -190,24 +191,6 @@ class MPMKernels(StencilFunctions, SlotIO, ParticleBins):
         E, nu = self.E[b], self.nu[b]
         return E / (2.0 * (1.0 + nu)), E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
 
-    @ti.kernel
-    def _clear_grid(self, g: ti.i32):
-        """Zero grid copy g where its last substep wrote: its box, which this substep's P2G then bounds anew.
-        Every write to a grid copy stays inside its box, so the whole copy is zero afterwards. Every pass
-        over a grid copy (this clear, the grid update, the grid hooks, their adjoints) loops over its box,
-        ``ti.grouped(ti.ndrange(*[(active_lo[g][k], active_hi[g][k]) ...]))``: the nodes outside hold no
-        material and no gather reads them. (Written out in each kernel: Taichi cannot return a range from
-        a ``ti.func``, and a ``ti.func`` computing the bounds before the loop breaks Taichi's autodiff of
-        the grid update.)"""
-        ti.loop_config(serialize=self.serial_grid_loops)
-        for I in ti.grouped(
-            ti.ndrange(*[(self.active_lo[g][k], self.active_hi[g][k]) for k in ti.static(range(self.dim))])
-        ):
-            self.grid_mm[g, I] = ti.Vector.zero(float, self.dim + 1)
-            self.grid_v[g, I] = ti.Vector.zero(float, self.dim)
-            for fld in ti.static(self._hook_fields("scratch")):
-                fld[g, I] = ti.zero(fld[g, I])
-
     @ti.func
     def node_mass(self, g, I):
         """Mass [kg] P2G scattered to node I of grid copy g."""
@@ -223,90 +206,6 @@ class MPMKernels(StencilFunctions, SlotIO, ParticleBins):
     def velocity(self, g, I):
         """Grid velocity G2P gathers at node I of grid copy g (a grid hook may supply its own)."""
         return self.grid_v[g, I]
-
-    @ti.kernel
-    def _stress(self, mat: ti.template(), b: ti.i32, start: ti.i32, end: ti.i32, src: ti.i32, g: ti.i32, dt: float):
-        """Affine momentum per particle: stress term plus APIC m C (parallel unless the engine is small: ``arch``)."""
-        ti.loop_config(serialize=self.serial_particle_loops)
-        for p in range(start, end):
-            mu, lam = self._lame(b)
-            m_p, vol = self.p_mass[b], self.p_vol[b]
-            tau = mat.kirchhoff(self.F[src, p], self.C[src, p], mu, lam, self.viscosity[b])
-            self.affine[g, p] = (-dt * vol * 4.0 * self.inv_dx * self.inv_dx) * tau + m_p * self.C[src, p]
-
-    @ti.func
-    def particle_momentum(self, src, g, p, m_p, control_share):
-        """Momentum [N s] particle p scatters in P2G besides its affine part: m_p v, its share of the
-        control impulse and the particle hooks' momenta."""
-        mom = m_p * self.v[src, p]
-        if ti.static(self.cfg.has_controls):
-            mom += control_share * self.control[p]
-        for hook in ti.static(self.particle_hooks):
-            mom += hook.output[g, p]
-        return mom
-
-    @ti.func
-    def _p2g_particle(self, b, p, src, g, control_share, atomic: ti.template()):
-        """Scatter particle p's mass and momentum onto its stencil (of body b); returns its base node."""
-        m_p = self.p_mass[b]
-        base, fx, w = self.stencil(self.x[src, p])
-        # node o receives weight * (mom + affine @ (o - fx) dx) = weight * (at_base + sum_k o_k steps[:, k])
-        steps = self.affine[g, p] * self.dx
-        at_base = self.particle_momentum(src, g, p, m_p, control_share) - steps @ fx
-        for offset in ti.static(ti.grouped(ti.ndrange(*([3] * self.dim)))):
-            mom = self.plus_steps(at_base, steps, offset, 0)
-            share = self.stencil_weight(w, offset) * ti.Vector([mom[k] for k in ti.static(range(self.dim))] + [m_p])
-            self.add_at(self.grid_mm, g, base + offset, share, atomic)
-        return base
-
-    @ti.kernel
-    def _p2g(
-        self,
-        scatter: ti.template(),
-        b: ti.i32,
-        start: ti.i32,
-        end: ti.i32,
-        src: ti.i32,
-        g: ti.i32,
-        control_share: float,
-        first_body: ti.i32,
-        colour: ti.i32,
-    ):
-        """Scatter mass and momentum, and bound the nodes written: the box [active_lo, active_hi) of grid
-        copy g, which the grid passes loop over (a body usually covers a small part of the domain), started
-        afresh by the first body's scatter, widened by ``box_margin`` nodes on every side (a grid hook
-        reading a node's neighbours asks for it) within the grid. ``scatter`` (``SCATTERS``): "serial", one
-        thread with plain adds and min / max; "coloured", colour ``colour``'s blocks (``bin_particles``), each
-        block's particles in index order on one thread with plain adds (a launch per colour: one compiled
-        copy, not 2^d); "atomic", every particle in parallel with atomic adds. The adjoint is a gather."""
-        margin = ti.static(self.box_margin)
-        bounded = ti.static(self.bounded_grid)  # else the box stays the whole grid (``arch``)
-        if ti.static(bounded):  # noqa: SIM102 (a compile-time test: Taichi cannot join it with a run-time one)
-            if first_body:
-                self.active_lo[g] = ti.Vector(self.nodes)
-                self.active_hi[g] = ti.Vector.zero(ti.i32, self.dim)
-        if ti.static(scatter == "coloured"):
-            if ti.static(bounded):  # noqa: SIM102 (a compile-time test)
-                if colour == 0:
-                    ti.atomic_min(self.active_lo[g], self.reach_lo[None] - margin)
-                    ti.atomic_max(self.active_hi[g], self.reach_hi[None] + 2 + margin)
-            ti.loop_config(block_dim=1)  # a block per task: a colour has few
-            for i in range(self.colour_count[colour]):
-                blk = self.colour_blocks[colour, i]
-                first = self.block_start[blk]
-                for k in range(first, first + self.block_count[blk]):
-                    self._p2g_particle(b, self.bin_order[k], src, g, control_share, False)
-        else:
-            ti.loop_config(serialize=scatter == "serial")
-            for p in range(start, end):
-                base = self._p2g_particle(b, p, src, g, control_share, scatter == "atomic")
-                if ti.static(bounded):
-                    ti.atomic_min(self.active_lo[g], base - margin)
-                    ti.atomic_max(self.active_hi[g], base + 3 + margin)
-        if ti.static(bounded):  # noqa: SIM102 (compile-time tests)
-            if ti.static(margin > 0):  # the widened box kept inside the grid
-                self.active_lo[g] = ti.max(self.active_lo[g], 0)
-                self.active_hi[g] = ti.min(self.active_hi[g], ti.Vector(self.nodes))
 
     @ti.kernel
     def _grid_update(self, g: ti.i32, dt: float, mass_floor: float):
@@ -403,21 +302,21 @@ class MPMKernels(StencilFunctions, SlotIO, ParticleBins):
         return src if self.cfg.requires_grad else 0
 
     def pre_coupling(self, src: int, s: int, dt: float, control_share: float = 0.0) -> None:
-        """Let boundary sources prepare substep s (``before_substep``), clear the grid, let the
-        particle hooks compute their momenta, scatter every body (P2G)."""
+        """Let boundary sources prepare substep s (``before_substep``), let the particle hooks compute their
+        momenta, clear the grid and scatter every body (P2G)."""
         for prepare in self.substep_preparers:
             prepare(src, s)
         g = self._grid_index(src)
-        if not self._fused_clear():  # else grid_update cleared it
-            self._clear_grid(g)
-        for hook in self.particle_hooks:
+        for hook in self.particle_hooks:  # per-particle momenta (``output``): no grid written before the clear
             hook.apply(src, g, s, dt)
+        clear = not self._fused_clear()  # else grid_update cleared it
         for b, (mat, (lo, hi)) in enumerate(zip(self.materials, self.ranges)):
-            self._stress(mat, b, lo, hi, src, g, dt)
             if self.scatter == "coloured":
                 self.bin_particles(src, lo, hi)
             for colour in range(self.colours if self.scatter == "coloured" else 1):  # a launch per colour, in turn
-                self._p2g(self.scatter, b, lo, hi, src, g, control_share, b == 0 and colour == 0, colour)
+                first = colour == 0
+                self._p2g(self.scatter, mat, b, lo, hi, src, g, dt, control_share, b == 0 and first, colour,
+                          clear and b == 0 and first, first)  # fmt: skip
 
     def coupling(self, src: int, s: int, dt: float) -> None:
         """Grid update (velocities, gravity, walls), then the grid hooks in the order attached."""
