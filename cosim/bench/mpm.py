@@ -165,6 +165,11 @@ def run_config(cfg: dict, interp: Interpreter | None = None) -> dict:
     env = {**CACHE_ENV, **interp.env} | ({"COSIM_CPU_THREADS": str(threads)} if threads else {})
     res = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=interp.cosim_root, check=False)
     if res.returncode != 0:
+        refused = [line for line in res.stderr.splitlines() if line.startswith("cosim.errors.InputError: ")]
+        if refused:  # the child's input was refused (e.g. --arch cuda without a GPU): the reason, not its traceback
+            from cosim.errors import InputError
+
+            raise InputError(refused[-1].removeprefix("cosim.errors.InputError: "))
         raise RuntimeError(f"{interp.label} run of {cfg} failed (exit {res.returncode}):\n{res.stderr[-2000:]}")
     row = json.loads(res.stdout.strip().splitlines()[-1])
     if Path(row["cosim"]).resolve() != (interp.cosim_root / "cosim").resolve():
