@@ -107,12 +107,12 @@ class MPMAdjointKernels(MPMKernels):
         own grid, else ``gathered_grad`` (``_gathered_grad_to_source`` hands it to the last grid hook).
         ``scatter`` as in ``_p2g`` (the coloured one over ``bin_particles``' lists of slot src)."""
         if ti.static(scatter == "coloured"):  # colour ``colour``'s blocks
-            ti.loop_config(block_dim=1)  # a block per task: a colour has few
-            for i in range(self.colour_count[colour]):
-                blk = self.colour_blocks[colour, i]
-                first = self.block_start[blk]
-                for k in range(first, first + self.block_count[blk]):
-                    self._g2p_adjoint_particle(self.bin_order[k], src, dst, g, out, False)
+            for j in range(self.colour_count[colour] * self.spread):  # a block per task (``mpm_bins.SPREAD``)
+                if j % self.spread == 0:
+                    blk = self.colour_blocks[colour, j // self.spread]
+                    first = self.block_start[blk]
+                    for k in range(first, first + self.block_count[blk]):
+                        self._g2p_adjoint_particle(self.bin_order[k], src, dst, g, out, False)
         else:
             ti.loop_config(serialize=scatter == "serial")
             for p in range(self.count[None]):

@@ -18,11 +18,17 @@ import numpy as np
 import taichi as ti
 
 from cosim.engines import field_pool
+from cosim.engines.arch import CPU_ARCHES, running_arch
 from cosim.engines.data_oriented import data_oriented
 
 BLOCK = 4  # grid cells per block and axis (at least 2 keeps same-coloured blocks' stencils apart)
 CHUNKS = 64  # runs of particles counted apart: at most this many threads count and place at once
 DRIFT = (BLOCK - 2) // 2  # [cells] how far a particle's stencil base may leave its listed block
+# Taichi 1.7's CPU backend hands a parallel loop out in tasks of 512 to 1024 iterations (its adaptive
+# block size, whatever ``loop_config`` says), so a loop over a few hundred blocks or 64 chunks ran on one
+# thread. The loops over blocks and chunks therefore run over SPREAD times as many iterations, of which
+# every SPREAD-th does one block's (chunk's) work: each task holds at most one. (A GPU: 1.)
+SPREAD = 1024
 
 
 @data_oriented
@@ -36,6 +42,7 @@ class ParticleBins:
         self.bin_blocks = tuple(-(-n // BLOCK) for n in self.nodes)  # blocks per axis
         n_blocks = int(np.prod(self.bin_blocks))
         self.colours = 2**d
+        self.spread = SPREAD if running_arch() in CPU_ARCHES else 1  # iterations per block or chunk
         per_colour = int(np.prod([-(-b // 2) for b in self.bin_blocks]))
         self.block_of = field_pool.scalar(self, ti.i32, shape=self.capacity)  # each particle's block
         self.bin_order = field_pool.scalar(self, ti.i32, shape=self.capacity)  # particles by block, index order
@@ -122,24 +129,24 @@ class ParticleBins:
         self.reach_lo[None] = ti.Vector(self.nodes)
         self.reach_hi[None] = ti.Vector.zero(ti.i32, d)
         self.bin_moved[None] = 0
-        ti.loop_config(block_dim=1)  # a chunk per task (Taichi's CPU tasks take 32 iterations by default)
-        for c in range(CHUNKS):
-            lo, hi = self.chunk_range(c, start, end)
-            reached_lo = ti.Vector(self.nodes)
-            reached_hi = ti.Vector.zero(ti.i32, d)
-            moved = 0
-            for p in range(lo, hi):
-                base = self.stencil_base(self.x[src, p])
-                reached_lo = ti.min(reached_lo, base)
-                reached_hi = ti.max(reached_hi, base + 1)
-                corner = self.block_coords(self.block_of[p]) * BLOCK
-                for k in ti.static(range(d)):
-                    if base[k] < corner[k] - DRIFT or base[k] >= corner[k] + BLOCK + DRIFT:
-                        moved = 1
-            if hi > lo:
-                ti.atomic_min(self.reach_lo[None], reached_lo)
-                ti.atomic_max(self.reach_hi[None], reached_hi)
-                self.bin_moved[None] += moved + fresh
+        for j in range(CHUNKS * self.spread):  # a chunk per task (``SPREAD``)
+            if j % self.spread == 0:
+                lo, hi = self.chunk_range(j // self.spread, start, end)
+                reached_lo = ti.Vector(self.nodes)
+                reached_hi = ti.Vector.zero(ti.i32, d)
+                moved = 0
+                for p in range(lo, hi):
+                    base = self.stencil_base(self.x[src, p])
+                    reached_lo = ti.min(reached_lo, base)
+                    reached_hi = ti.max(reached_hi, base + 1)
+                    corner = self.block_coords(self.block_of[p]) * BLOCK
+                    for k in ti.static(range(d)):
+                        if base[k] < corner[k] - DRIFT or base[k] >= corner[k] + BLOCK + DRIFT:
+                            moved = 1
+                if hi > lo:
+                    ti.atomic_min(self.reach_lo[None], reached_lo)
+                    ti.atomic_max(self.reach_hi[None], reached_hi)
+                    self.bin_moved[None] += moved + fresh
         self.bin_lo[None] = self.reach_lo[None] // BLOCK
         self.bin_hi[None] = (self.reach_hi[None] - 1) // BLOCK + 1
         return self.bin_moved[None]
@@ -147,13 +154,14 @@ class ParticleBins:
     @ti.kernel
     def _bin_count(self, src: ti.i32, start: ti.i32, end: ti.i32):
         """Count the particles of [start, end) in slot src per chunk and block."""
-        ti.loop_config(block_dim=1)
-        for c in range(CHUNKS):
-            lo, hi = self.chunk_range(c, start, end)
-            for p in range(lo, hi):
-                blk = self.block_index(self.stencil_base(self.x[src, p]) // BLOCK)
-                self.block_of[p] = blk
-                self.chunk_cursor[c, blk] = self.chunk_cursor[c, blk] + 1  # this chunk's own column
+        for j in range(CHUNKS * self.spread):  # a chunk per task (``SPREAD``)
+            if j % self.spread == 0:
+                c = j // self.spread
+                lo, hi = self.chunk_range(c, start, end)
+                for p in range(lo, hi):
+                    blk = self.block_index(self.stencil_base(self.x[src, p]) // BLOCK)
+                    self.block_of[p] = blk
+                    self.chunk_cursor[c, blk] = self.chunk_cursor[c, blk] + 1  # this chunk's own column
 
     @ti.kernel
     def _bin_place(self, start: ti.i32, end: ti.i32):
@@ -181,17 +189,19 @@ class ParticleBins:
                 colour = self.colour_of(J)
                 self.colour_blocks[colour, self.colour_count[colour]] = blk
                 self.colour_count[colour] += 1
-        ti.loop_config(block_dim=1)
-        for c in range(CHUNKS):  # place, in index order within each chunk: chunks in order within a block
-            lo, hi = self.chunk_range(c, start, end)
-            for p in range(lo, hi):
-                blk = self.block_of[p]
-                place = self.chunk_cursor[c, blk]
-                self.bin_order[self.block_start[blk] + place] = p
-                self.chunk_cursor[c, blk] = place + 1
-        ti.loop_config(block_dim=1)
-        for c in range(CHUNKS):  # leave the cursors zero for the next call
-            lo, hi = self.chunk_range(c, start, end)
-            for p in range(lo, hi):
-                self.chunk_cursor[c, self.block_of[p]] = 0
+        for j in range(CHUNKS * self.spread):  # place, in index order within each chunk: chunks in order
+            if j % self.spread == 0:  # within a block
+                c = j // self.spread
+                lo, hi = self.chunk_range(c, start, end)
+                for p in range(lo, hi):
+                    blk = self.block_of[p]
+                    place = self.chunk_cursor[c, blk]
+                    self.bin_order[self.block_start[blk] + place] = p
+                    self.chunk_cursor[c, blk] = place + 1
+        for j in range(CHUNKS * self.spread):  # leave the cursors zero for the next call
+            if j % self.spread == 0:
+                c = j // self.spread
+                lo, hi = self.chunk_range(c, start, end)
+                for p in range(lo, hi):
+                    self.chunk_cursor[c, self.block_of[p]] = 0
         self.bin_fill[None] = 0

@@ -115,12 +115,12 @@ class P2GKernels:
                 if colour == 0:
                     ti.atomic_min(self.active_lo[g], self.reach_lo[None] - margin)
                     ti.atomic_max(self.active_hi[g], self.reach_hi[None] + 2 + margin)
-            ti.loop_config(block_dim=1)  # a block per task: a colour has few
-            for i in range(self.colour_count[colour]):
-                blk = self.colour_blocks[colour, i]
-                first = self.block_start[blk]
-                for k in range(first, first + self.block_count[blk]):
-                    self._p2g_particle(b, self.bin_order[k], src, g, control_share, False)
+            for j in range(self.colour_count[colour] * self.spread):  # a block per task (``mpm_bins.SPREAD``)
+                if j % self.spread == 0:
+                    blk = self.colour_blocks[colour, j // self.spread]
+                    first = self.block_start[blk]
+                    for k in range(first, first + self.block_count[blk]):
+                        self._p2g_particle(b, self.bin_order[k], src, g, control_share, False)
         else:
             ti.loop_config(serialize=scatter == "serial")
             for p in range(start, end):
