@@ -26,10 +26,11 @@ def placed(field):
         return False
 
 
-compiled = {
-    name: sorted({type(ref()).__name__ for key in getattr(type(mpm), name)._primal.mapper.mapping for ref in key[1:2]})
-    for name in ("_stress", "_g2p_advect")
-}
+def materials(name, at):  # the material template argument of each compiled instance of kernel ``name``
+    return sorted({type(key[at]()).__name__ for key in getattr(type(mpm), name)._primal.mapper.mapping})
+
+
+compiled = {"_p2g": materials("_p2g", 2), "_g2p_advect": materials("_g2p_advect", 1)}  # (after self, scatter)
 print(json.dumps({
     "modules": sorted(m for m in sys.modules if m.split(".")[0] == "dartpy" or m.startswith(("cosim.engines.rigid", "cosim.engines.cloth"))),
     "hooks": len(mpm.grid_hooks) + len(mpm.particle_hooks),
@@ -48,4 +49,4 @@ def test_a_pure_mpm_run_builds_imports_and_compiles_only_the_mpm():
     assert seen["modules"] == []  # neither dartpy nor our rigid or cloth engines
     assert seen["hooks"] == 0  # no contact model on the grid or the particles
     assert seen["grad_buffers"] == [False] * 4
-    assert seen["materials_compiled"] == {"_stress": ["Elastic"], "_g2p_advect": ["Elastic"]}  # no return mapping
+    assert seen["materials_compiled"] == {"_p2g": ["Elastic"], "_g2p_advect": ["Elastic"]}  # no return mapping
