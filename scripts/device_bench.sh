@@ -10,7 +10,7 @@
 #   python3 -m pip download --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
 #     --platform manylinux_2_27_x86_64 --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 \
 #     -d .whl taichi==1.7.4 pydantic pydantic-core annotated-types typing-inspection typing-extensions \
-#     trimesh dill
+#     trimesh dill colorama
 #
 # and named in the call's carry. The script installs them into /tmp/site, then runs, each writing its
 # report and CSV under $OUT:
