@@ -10,8 +10,9 @@ of one colour scatter in parallel with plain adds, one thread per block, and the
 
 ``bin_particles`` lists each block's particles in ascending index: a counting sort whose counts are
 kept per chunk of ``CHUNKS`` equal runs of particles (a chunk is one thread's), so the order, and with
-it every node's sum, is the same on 1 thread or 64, run after run. Each pass touches the particles
-once; the per-block passes cover only the blocks the particles reach.
+it every node's sum, is the same on 1 thread or 64, run after run. The lists stand while every particle
+stays within ``DRIFT`` cells of its block (one check pass a substep); the engine has them made afresh
+where a macro step or its backward begins, so what a step sums follows from its start state alone.
 """
 
 import numpy as np
