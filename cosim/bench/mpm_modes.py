@@ -36,7 +36,7 @@ def run_mpm_bench(
     elif sizes:
         configs, name = size_configs(quick), "mpm_sizes"
     else:
-        configs, name = (gpu_configs(quick), "mpm") if arch != "cpu" else (fixed_configs(quick), "mpm")
+        configs, name = gpu_configs(quick) if arch != "cpu" else fixed_configs(quick), "mpm"
     name += "" if arch == "cpu" else f"_{arch}"
     name += "_threads" if threads else ""
     configs = expand(configs, arch, threads, scatters)

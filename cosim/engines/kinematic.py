@@ -112,13 +112,7 @@ class Motion:
         R = self.R0.astype(np.float64)
         if cycles and turn is not None:
             R = np.linalg.matrix_power(turn, cycles) @ R
-        if i < len(self.segments):
-            start_p, start_R = self._starts[i]
-        elif self.segments:  # after the last segment: its end
-            last = self.segments[-1]
-            start_p, start_R = self._advance_one(*self._starts[-1], last, last.duration)
-        else:
-            start_p, start_R = np.zeros(self.dim), np.eye(self.dim)
+        start_p, start_R = self._starts[i]
         return i, tau, p + start_p, start_R @ R
 
     @functools.cached_property
@@ -128,19 +122,19 @@ class Motion:
         shaken container asks for its pose at every substep."""
         period = sum(seg.duration for seg in self.segments)
         shift, turn = self._advance(np.zeros(self.dim), np.eye(self.dim), period) if period < math.inf else (0, 0)
-        no_turn = period == math.inf or np.allclose(turn, np.eye(self.dim), rtol=0, atol=0)
+        no_turn = period == math.inf or np.array_equal(turn, np.eye(self.dim))
         return period, shift, None if no_turn else turn
 
     @functools.cached_property
     def _starts(self) -> list[tuple[np.ndarray, np.ndarray]]:
-        """Each segment's start as a displacement and rotation from the cycle's start: the pose at a
-        segment's start is (p + dp, dR R) for the cycle's start pose (p, R)."""
+        """Each segment's start, then the last one's end (where the body rests after it), as a displacement
+        and rotation from the cycle's start: the pose there is (p + dp, dR R) for the cycle's start pose (p, R)."""
         dp, dR, out = np.zeros(self.dim), np.eye(self.dim), []
         for seg in self.segments:
             out.append((dp, dR))
             if seg.duration < math.inf:
                 dp, dR = self._advance_one(dp, dR, seg, seg.duration)
-        return out
+        return [*out, (dp, dR)]
 
     @staticmethod
     def _advance_one(p, R, seg: Segment, dt: float):
