@@ -241,6 +241,7 @@ def cmd_bench(args) -> int:
         threads=args.threads,
         scatters=args.scatter,
         particles=args.particles,
+        peer=args.peer,
     )
 
 
@@ -386,7 +387,7 @@ def make_parser() -> argparse.ArgumentParser:
         "--repeat",
         type=positive_int,
         default=3,
-        help="contact, coupling, cloth, mpm --baseline: repetitions; times are medians",
+        help="contact, coupling, cloth, mpm --baseline / --peer: repetitions; times are medians",
     )
     b.add_argument("--sizes", action="store_true", help="mpm: 3D float32 from 10k to 1M particles, 8 per cell")
     b.add_argument(
@@ -395,6 +396,12 @@ def make_parser() -> argparse.ArgumentParser:
         metavar="DIR",
         help="mpm: also run each configuration with the cosim in DIR (made by scripts/baseline_env.sh, "
         "a virtualenv or a checkout), interleaved; prints current/baseline ratios",
+    )
+    b.add_argument(
+        "--peer",
+        metavar="softmac=DIR",
+        help="mpm: also run SoftMAC's MPM from its checkout DIR on 3D float64 blocks, interleaved; "
+        "prints current/peer ratios",
     )
     b.add_argument("--profile", action="store_true", help="mpm: Taichi's kernel profile of 3D 64³ float32")
     b.add_argument("--arch", choices=["cpu", "cuda"], default="cpu", help="mpm: where Taichi runs (cuda: 30k-2M)")

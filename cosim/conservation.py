@@ -146,9 +146,3 @@ class Conservation:
         if self.liquids:
             ratio = self._liquid_volume(energies) / self.volume0
             self.volume_ratio = (min(self.volume_ratio[0], ratio), max(self.volume_ratio[1], ratio))
-
-
-def control_work(impulse: np.ndarray, velocity: np.ndarray, mass: np.ndarray) -> float:
-    """[J] Kinetic energy impulses ``impulse`` (N, d) [N s] add to particles of velocity (N, d) [m/s] and
-    mass (N,) [kg]: I . v + |I|^2 / 2m."""
-    return float(np.sum(impulse * velocity) + np.sum(np.sum(impulse * impulse, axis=1) / (2.0 * mass)))

@@ -15,7 +15,7 @@ import warnings
 
 import numpy as np
 
-from cosim.conservation import Conservation, control_work
+from cosim.conservation import Conservation
 from cosim.engines.contract import declares
 from cosim.errors import CouplingWarning, SimulationError
 
@@ -140,7 +140,7 @@ class StepGuard:
             per_body = s.mpm.boundaries[c.source].work(boundaries[c.source], outputs["reactions"][c.source])
             cons.add_work(float(np.sum(per_body * ~np.asarray(c.budgeted()))))
         if mpm_record.impulse is not None:
-            cons.add_work(control_work(mpm_record.impulse, mpm_record.state["v"], s.mpm.mass))
+            cons.add_work(s.mpm.control_work())
 
     def end_exchange(self, engine_records: dict, coupler_records: dict, last: bool = True) -> None:
         """After every engine stepped in an exchange: the work the engines' prescribed parts and the bodies

@@ -12,10 +12,14 @@
 #     -d .whl taichi==1.7.4 pydantic pydantic-core annotated-types typing-inspection typing-extensions \
 #     trimesh dill colorama
 #
-# and named in the call's carry. The script installs them into /tmp/site, then runs, each writing its
-# report and CSV under $OUT:
+# and named in the call's carry. SoftMAC, the peer, comes along the same way when .peers/SoftMAC holds
+# a checkout of it (`git clone https://github.com/damianliumin/SoftMAC .peers/SoftMAC`, git-ignored with
+# `echo /.peers/ >> .git/info/exclude`; only its softmac/engine/ is needed). The script installs the
+# wheels into /tmp/site, then runs, each writing its report and CSV under $OUT:
 #   1. `cosim bench mpm --arch cuda`: 30k, 250k and 2M particles on the GPU;
-#   2. `cosim bench mpm --particles 1000000 --threads 1,2,4,8,16 --scatter serial,coloured --quick`:
+#   2. with .peers/SoftMAC, `cosim bench mpm --arch cuda --peer softmac=.peers/SoftMAC`: cosim / SoftMAC
+#      on the 30k block in float64, interleaved (its first 3D backward compiles for minutes);
+#   3. `cosim bench mpm --particles 1000000 --threads 1,2,4,8,16 --scatter serial,coloured --quick`:
 #      the many-core curve at 1M particles on the machine's CPU cores.
 # `quick` runs the GPU's 30k block only and the curve at 100k particles (a rehearsal on any machine:
 # pass ARCH=cpu to run step 1 on the CPU). dartpy is not installed there: these are MPM-only.
@@ -38,8 +42,10 @@ nvidia-smi --query-gpu=name,memory.total --format=csv,noheader 2>/dev/null || ec
 nproc
 if [ "$quick" = quick ]; then
     cosim bench mpm --arch "$arch" --quick --out "$out/gpu"
+    [ -d .peers/SoftMAC ] && cosim bench mpm --arch "$arch" --peer softmac=.peers/SoftMAC --quick --repeat 1 --out "$out/peer"
     cosim bench mpm --particles 100000 --threads 1,2 --scatter serial,coloured --quick --out "$out/threads"
 else
     cosim bench mpm --arch "$arch" --out "$out/gpu"
+    [ -d .peers/SoftMAC ] && cosim bench mpm --arch "$arch" --peer softmac=.peers/SoftMAC --repeat 3 --out "$out/peer"
     cosim bench mpm --particles 1000000 --threads 1,2,4,8,16 --scatter serial,coloured --quick --out "$out/threads"
 fi

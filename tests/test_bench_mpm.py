@@ -58,3 +58,24 @@ def test_mpm_flags_that_do_not_go_together_are_refused_by_name():
         check_mode(True, None, False, "cpu", None, None, 1000)
     with pytest.raises(InputError, match="options of `bench mpm`, not of `bench contact`"):
         run_bench("contact", Path("unused"), threads=[2])
+
+
+def test_a_peer_is_named_and_found_or_refused_with_the_fix(tmp_path):
+    """`--peer` takes NAME=DIR for a known peer whose engine module is in DIR; otherwise the error names
+    the flag and says how to get the checkout. It runs on its own sizes: --particles with it is refused."""
+    import pytest
+
+    from cosim.bench.mpm_modes import check_mode
+    from cosim.bench.mpm_peer import MEASURE_SOFTMAC, peer_interpreter
+    from cosim.errors import InputError
+
+    with pytest.raises(InputError, match="--peer genesis=.*NAME one of softmac"):
+        peer_interpreter(f"genesis={tmp_path}")
+    with pytest.raises(InputError, match=r"no softmac/engine/mpm_simulator.py under .*clone https://github.com/"):
+        peer_interpreter(f"softmac={tmp_path}")
+    (tmp_path / "softmac" / "engine").mkdir(parents=True)
+    (tmp_path / "softmac" / "engine" / "mpm_simulator.py").write_text("")
+    peer = peer_interpreter(f"softmac={tmp_path}")
+    assert peer.env["PYTHONPATH"].split(":")[0] == str(tmp_path) and peer.measure == MEASURE_SOFTMAC
+    with pytest.raises(InputError, match="--peer compares its own sizes"):
+        check_mode(False, None, False, "cpu", None, None, 30000, f"softmac={tmp_path}")

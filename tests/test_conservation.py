@@ -63,15 +63,17 @@ def _energies(sim):
     return body_energies(sim.mpm, sim.mpm.state(), sim.gravity)
 
 
-def test_control_impulses_do_work_equal_to_the_kinetic_energy_they_add():
+@pytest.mark.parametrize("requires_grad", [False, True], ids=["forward", "gradients"])
+def test_control_impulses_do_work_equal_to_the_kinetic_energy_they_add(requires_grad):
     """Uniform impulses on a free block (no gravity, no walls reached): its particles keep one velocity,
-    so the energy gained is exactly the accounted I . v + |I|^2 / 2m, summed over the steps."""
+    so the energy gained is exactly the accounted I . v + |I|^2 / 2m, summed over the steps (on the
+    device, from the slot the step started from: a rotating one forward, slot 0 with gradients)."""
     scene = make_scene(
         steps=20,
         mpm={**WEIGHTLESS, "bodies": [block([0.5, 0.5], velocity=(0.1, 0.0))]},
         controls=[{"body": "block", "impulse": [2e-3, 1e-3]}],
     )
-    sim = build_system(scene)
+    sim = build_system(scene, requires_grad=requires_grad)
     sim.rollout()
     cons = sim.conservation
     energy_gain = sum(e["total"] for e in _energies(sim).values()) - cons.E0

@@ -1,10 +1,12 @@
 """What a gradient run will hold in memory, estimated before it starts (`cosim gradcheck`, `cosim optimize`).
 
-Two parts: the tape on the host (the MPM checkpoints it keeps, every step's control impulse
-field, the running loss terms' gradients) and the engines' Taichi fields with their adjoints
-(one macro step of substeps: K + 1 particle slots, K grids). Not counted: the boundary states
-each record keeps (per substep: a few floats per rigid body, a cloth's vertices) and Taichi's
-own runtime.
+Two parts: the tape (the MPM checkpoints it keeps, every step's control impulse field, the
+running loss terms' gradients) and the engines' Taichi fields with their adjoints (one macro step
+of substeps: K + 1 particle slots, K grids). The checkpoints stay on the engine's device as far as
+its budget goes (``cosim.engines.mpm_checkpoints``), the rest of the tape is on the host; the
+estimate says how many fit. Not counted: the boundary states each record keeps (per substep: a
+few floats per rigid body, a cloth's vertices), the one or two state adjoints in flight, and
+Taichi's own runtime.
 """
 
 from __future__ import annotations
@@ -12,7 +14,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import numpy as np
+from cosim.engines.arch import CPU_ARCHES, running_arch
+from cosim.engines.device_memory import taichi_field_bytes
 
 MIB = 2**20
 
@@ -28,6 +31,15 @@ class MemoryEstimate:
     per_step_bytes: int  # what every record holds whatever k: the control impulse field
     running_bytes: int  # the running loss terms' gradients, one per state
     field_bytes: int  # the engines' Taichi fields, adjoints included
+    device_budget: int | None = None  # [bytes] checkpoints the device may hold (None: no bound)
+    arch: str = "x64"  # Taichi's arch the engines run on
+
+    @property
+    def on_device(self) -> int:
+        """How many of the held checkpoints the device keeps (the first ones made; the rest on the host)."""
+        if self.device_budget is None:
+            return self.held_checkpoints
+        return min(self.held_checkpoints, self.device_budget // max(self.checkpoint_bytes, 1))
 
     @property
     def tape_bytes(self) -> int:
@@ -41,10 +53,22 @@ class MemoryEstimate:
         k = self.checkpoint_every
         kept = "one per step" if k == 1 else f"every {k}th of {self.steps} kept, one segment recomputed"
         return (
-            f"memory estimate: {self.total_bytes / MIB:.0f} MiB = tape {self.tape_bytes / MIB:.1f} MiB on the host "
-            f"(at most {self.held_checkpoints} MPM checkpoints of {self.checkpoint_bytes / MIB:.2f} MiB: {kept}) "
-            f"+ engine fields {self.field_bytes / MIB:.0f} MiB, plus the interpreter and Taichi's runtime"
+            f"memory estimate: {self.total_bytes / MIB:.0f} MiB = tape {self.tape_bytes / MIB:.1f} MiB "
+            f"(at most {self.held_checkpoints} MPM checkpoints of {self.checkpoint_bytes / MIB:.2f} MiB: {kept}; "
+            f"{self._where()}) + engine fields {self.field_bytes / MIB:.0f} MiB, plus the interpreter and "
+            "Taichi's runtime"
         )
+
+    def _where(self) -> str:
+        """Where the checkpoints are, in words."""
+        if self.device_budget is None:
+            return "in Taichi arrays, the host's memory on a CPU" if self.arch in CPU_ARCHES else f"on the {self.arch}"
+        budget = f"{self.device_budget / MIB:.0f} MiB"
+        if self.on_device == self.held_checkpoints:
+            return f"on the {self.arch}, within its checkpoint budget of {budget}"
+        if self.on_device == 0:
+            return f"on the host: the {self.arch}'s checkpoint budget of {budget} holds none"
+        return f"{self.on_device} on the {self.arch} (its checkpoint budget of {budget}), the rest on the host"
 
 
 def held_checkpoints(steps: int, every: int) -> int:
@@ -58,9 +82,9 @@ def estimate_memory(system, steps: int, checkpoint_every: int = 1, running_loss:
     """The estimate for ``system`` (built with gradients) over ``steps`` macro steps."""
     mpm = system.mpm
     n, d = mpm.n_particles, mpm.dim
-    itemsize = np.dtype(mpm.real).itemsize
-    per_exchange = n * (2 * d + 2 * d * d) * itemsize  # x, v, C, F
-    state = per_exchange * system.exchanges  # a macro step's checkpoints: one before each of its exchanges
+    state = (
+        mpm.checkpoints.state_bytes * system.exchanges
+    )  # a macro step's checkpoints: one before each of its exchanges
     impulse = n * d * 8 * system.exchanges if mpm.control is not None else 0  # the (N, d) field per exchange, float64
     running = (steps + 1) * n * 2 * d * 8 if running_loss else 0  # dL/dx and dL/dv per state, at most
     objects = [mpm, *mpm.grid_hooks, *mpm.particle_hooks, *mpm.boundaries.values(), *system.engines.values()]
@@ -72,31 +96,6 @@ def estimate_memory(system, steps: int, checkpoint_every: int = 1, running_loss:
         impulse,
         running,
         taichi_field_bytes(objects),
+        mpm.checkpoints.budget(),
+        running_arch(),
     )
-
-
-def taichi_field_bytes(objects: list) -> int:
-    """Bytes of the Taichi fields reachable from the objects through cosim objects' attributes, lists
-    and dicts (each field counted once), with their adjoints."""
-    import taichi as ti
-    from taichi.lang.util import to_numpy_type
-
-    seen: set[int] = set()
-    total = 0
-    pending = list(objects)
-    while pending:
-        value = pending.pop()
-        if id(value) in seen:
-            continue
-        seen.add(id(value))
-        if isinstance(value, ti.Field):
-            entries = getattr(value, "n", 1) * getattr(value, "m", 1)
-            size = math.prod(value.shape) * entries * np.dtype(to_numpy_type(value.dtype)).itemsize
-            total += size * (2 if getattr(value, "grad", None) is not None else 1)
-        elif isinstance(value, (list, tuple)):
-            pending.extend(value)
-        elif isinstance(value, dict):
-            pending.extend(value.values())
-        elif type(value).__module__.startswith("cosim") and hasattr(value, "__dict__"):
-            pending.extend(vars(value).values())
-    return total

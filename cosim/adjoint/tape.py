@@ -2,12 +2,13 @@
 
 Forward, the rollout (``CoupledSystem.rollout``) pushes one ``StepRecord`` per macro
 step: one record per engine and coupler, keyed by name (the MPM's holds the state at
-the start of the step, a host-side checkpoint, its inputs and its boundary states).
+the start of the step, a checkpoint, its inputs and its boundary states; the checkpoint stays on the
+engine's device while it fits, ``cosim.engines.mpm_checkpoints``, and so do the state adjoints).
 Backward, the tape walks the records from last to first and calls
 ``step_vjp(record, dL/dstate_after)`` (``CoupledSystem.vjp``: the MPM vjp recomputes
 that step's substeps from its checkpoint), which returns dL/dstate_before per engine
 plus the gradients of the step's inputs and parameters. Memory is one MPM state
-per macro step on the host plus one macro step of substeps in the engine:
+per macro step plus one macro step of substeps in the engine:
 O(S N + K N), never O(S K N).
 
 With ``checkpoint_every`` k > 1 the tape keeps the MPM state of every k-th step only
@@ -61,7 +62,7 @@ class Tape:
 
     @property
     def nbytes(self) -> int:
-        """Host memory held by the checkpoints [bytes]."""
+        """Memory held by the records [bytes]: checkpoints (host or device), impulses, boundary states."""
         return sum(r.nbytes for r in self.records)
 
     def backward(
@@ -113,13 +114,16 @@ class Tape:
 
 
 def _plus(grad: dict[str, dict[str, np.ndarray]], extra: dict | None) -> dict[str, dict[str, np.ndarray]]:
-    """grad + extra per engine and key (extra may be None); new arrays, the inputs untouched."""
+    """grad + extra per engine and key (extra may be None); new arrays, the inputs untouched. Only the
+    engines in ``extra`` are read (an MPM state adjoint may be on the device: ``DeviceState``)."""
     if extra is None:
         return grad
-    out = {name: dict(g) for name, g in grad.items()}
+    out = dict(grad)
     for name, g in extra.items():
+        summed = dict(grad.get(name, {}))
         for key, value in g.items():
-            out.setdefault(name, {})[key] = out.get(name, {}).get(key, 0.0) + value
+            summed[key] = summed.get(key, 0.0) + value
+        out[name] = summed
     return out
 
 
@@ -130,6 +134,9 @@ def _check_finite(out: dict, n: int) -> None:
 
     groups = {}
     for engine, grads in out["state"].items():  # "couplers": {coupler: {key: gradient}}
+        if hasattr(grads, "nonfinite"):  # a state adjoint on the device checks itself there
+            groups.update({f"{engine}.{key}": np.nan for key in grads.nonfinite()})
+            continue
         for key, g in grads.items():
             groups.update({f"{key}.{k}": v for k, v in g.items()} if isinstance(g, dict) else {f"{engine}.{key}": g})
     groups.update({f"{engine}.action": g for engine, g in out["action"].items() if g is not None})

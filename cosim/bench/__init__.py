@@ -39,6 +39,7 @@ def run_bench(
     threads: list[int] | None = None,
     scatters: list[str] | None = None,
     particles: int | None = None,
+    peer: str | None = None,
 ) -> int:
     """Run benchmark ``what`` (one of ``BENCHMARKS``), writing into ``out_dir``; returns the exit code.
 
@@ -49,21 +50,22 @@ def run_bench(
     ``sizes`` / ``baseline`` / ``profile`` (mpm): 10k-1M particles; current/baseline ratios against the
     cosim in that folder (``repeat`` runs each); Taichi's kernel profile; ``arch``, ``threads``, ``scatters``,
     ``particles``: on the GPU, on each CPU thread count, with each scatter, one block of that size
-    (``cosim.bench.mpm``).
+    (``cosim.bench.mpm``); ``peer`` ("softmac=DIR"): current/peer ratios against SoftMAC's MPM in DIR
+    (``cosim.bench.mpm_peer``).
     """
-    mpm_only = sizes or baseline is not None or profile or arch != "cpu" or threads or scatters or particles
+    mpm_only = sizes or baseline is not None or profile or arch != "cpu" or threads or scatters or particles or peer
     if what != "mpm" and mpm_only:
         from cosim.errors import InputError
 
         raise InputError(
-            "--sizes, --baseline, --profile, --arch, --threads, --scatter and --particles are options of "
+            "--sizes, --baseline, --peer, --profile, --arch, --threads, --scatter and --particles are options of "
             f"`bench mpm`, not of `bench {what}`"
         )
     from cosim.bench.report import bench_command
 
     command = bench_command(
         what, out=out_dir, quick=quick, repeat=repeat, sizes=sizes, baseline=baseline, profile=profile, count=count,
-        seed=seed, steps=steps, scene=scenes, workers=workers, address=address, arch=arch, particles=particles,
+        seed=seed, steps=steps, scene=scenes, workers=workers, address=address, arch=arch, particles=particles, peer=peer,
         threads=",".join(map(str, threads)) if threads else None, scatter=",".join(scatters) if scatters else None,
     )  # fmt: skip
     if what == "long":
@@ -100,6 +102,6 @@ def run_bench(
 
         return run_mpm_bench(
             out_dir, quick=quick, sizes=sizes, baseline=baseline, repeat=repeat, profile=profile, command=command,
-            arch=arch, threads=threads, scatters=scatters, particles=particles,
+            arch=arch, threads=threads, scatters=scatters, particles=particles, peer=peer,
         )  # fmt: skip
     raise ValueError(f"unknown benchmark {what!r}; choose one of {BENCHMARKS}")

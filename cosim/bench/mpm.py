@@ -89,12 +89,15 @@ TABLE = [
 
 @dataclass
 class Interpreter:
-    """A Python that runs ``mpm_measure.py``: its executable, environment and the cosim it must import."""
+    """A Python that runs a measurement script (``mpm_measure.py``, or a peer's): its executable,
+    environment, and the package it must import (``root/package``: the cosim, or the peer's)."""
 
     python: str
-    cosim_root: Path  # the folder holding the cosim package it imports
+    root: Path  # the folder holding the package it imports
     env: dict = field(default_factory=dict)
     label: str = "current"
+    measure: Path = MEASURE
+    package: str = "cosim"
 
 
 def current_interpreter() -> Interpreter:
@@ -157,13 +160,13 @@ def expand(configs: list[dict], arch: str, threads: list[int] | None, scatters: 
 
 def run_config(cfg: dict, interp: Interpreter | None = None) -> dict:
     """Measure one configuration in a fresh process of ``interp`` (default: this cosim); a RuntimeError
-    with the child's stderr if it fails, or if it imported another cosim than ``interp``'s."""
+    with the child's stderr if it fails, or if it imported another package than ``interp``'s."""
     interp = interp or current_interpreter()
     cfg = dict(cfg)
     threads = cfg.pop("threads", None)  # a setting of the process, not of the measurement
-    cmd = [interp.python, str(MEASURE), json.dumps(cfg)]
+    cmd = [interp.python, str(interp.measure), json.dumps(cfg)]
     env = {**CACHE_ENV, **interp.env} | ({"COSIM_CPU_THREADS": str(threads)} if threads else {})
-    res = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=interp.cosim_root, check=False)
+    res = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=interp.root, check=False)
     if res.returncode != 0:
         refused = [line for line in res.stderr.splitlines() if line.startswith("cosim.errors.InputError: ")]
         if refused:  # the child's input was refused (e.g. --arch cuda without a GPU): the reason, not its traceback
@@ -172,8 +175,8 @@ def run_config(cfg: dict, interp: Interpreter | None = None) -> dict:
             raise InputError(refused[-1].removeprefix("cosim.errors.InputError: "))
         raise RuntimeError(f"{interp.label} run of {cfg} failed (exit {res.returncode}):\n{res.stderr[-2000:]}")
     row = json.loads(res.stdout.strip().splitlines()[-1])
-    if Path(row["cosim"]).resolve() != (interp.cosim_root / "cosim").resolve():
-        raise RuntimeError(f"the {interp.label} run imported cosim from {row['cosim']}, not {interp.cosim_root}")
+    if Path(row["package"]).resolve() != (interp.root / interp.package).resolve():
+        raise RuntimeError(f"the {interp.label} run imported {row['package']}, not {interp.root / interp.package}")
     return row
 
 
@@ -220,7 +223,7 @@ def run_throughput(out_dir: Path, configs: list[dict], name: str, command: str |
 
     rows = []
     for cfg in configs:
-        rows.append({k: v for k, v in run_config(cfg).items() if k != "cosim"})
+        rows.append({k: v for k, v in run_config(cfg).items() if k != "package"})
         r = rows[-1]
         r["fwd_GBps"] = r["fwd_Mpss"] * 1e6 * particle_bytes(r["dim"], r["precision"]) / 1e9
         print(f"  done {r['dim']}D {r['precision']} {r['particles']:,} {r['arch']} {r['threads']} threads "

@@ -33,19 +33,25 @@ from cosim.bench.mpm import (
 from cosim.errors import InputError
 
 MEASURES = ["fwd_Mpss", "fwd_bwd_Mpss", "bwd_fwd_ratio", "peak_MiB"]
-TABLE = [
-    *CONFIG_COLUMNS,
-    ("base_fwd_Mpss", "fwd base", ">8.2f"),
-    ("cur_fwd_Mpss", "fwd cur", ">8.2f"),
-    ("ratio_fwd_Mpss", "ratio", ">6.2f"),
-    ("base_fwd_bwd_Mpss", "f+b base", ">8.3f"),
-    ("cur_fwd_bwd_Mpss", "f+b cur", ">8.3f"),
-    ("ratio_fwd_bwd_Mpss", "ratio", ">6.2f"),
-    ("base_bwd_fwd_ratio", "b/f base", ">8.2f"),
-    ("cur_bwd_fwd_ratio", "b/f cur", ">8.2f"),
-    ("base_peak_MiB", "MiB base", ">8.0f"),
-    ("cur_peak_MiB", "MiB cur", ">8.0f"),
-]
+
+
+def table(short: str) -> list[tuple[str, str, str]]:
+    """The printed columns: the reference's (``ref_``, headed ``short``), the current's and their ratios."""
+    return [
+        *CONFIG_COLUMNS,
+        ("ref_fwd_Mpss", f"fwd {short}", ">8.2f"),
+        ("cur_fwd_Mpss", "fwd cur", ">8.2f"),
+        ("ratio_fwd_Mpss", "ratio", ">6.2f"),
+        ("ref_fwd_bwd_Mpss", f"f+b {short}", ">8.3f"),
+        ("cur_fwd_bwd_Mpss", "f+b cur", ">8.3f"),
+        ("ratio_fwd_bwd_Mpss", "ratio", ">6.2f"),
+        ("ref_bwd_fwd_ratio", f"b/f {short}", ">8.2f"),
+        ("cur_bwd_fwd_ratio", "b/f cur", ">8.2f"),
+        ("ref_peak_MiB", f"MiB {short}", ">8.0f"),
+        ("cur_peak_MiB", "MiB cur", ">8.0f"),
+    ]
+
+
 HOW = "create one with scripts/baseline_env.sh b24c315 DIR (a git worktree of the commit and a virtualenv)"
 
 
@@ -67,7 +73,7 @@ def baseline_interpreter(folder: Path) -> Interpreter:
     if res.returncode != 0:
         raise InputError(f"--baseline {folder}: {python} cannot import cosim ({res.stderr.strip()[-300:]}); {HOW}")
     root = Path(res.stdout.strip().splitlines()[-1]).resolve().parents[1]
-    if root == current_interpreter().cosim_root:
+    if root == current_interpreter().root:
         raise InputError(f"--baseline {folder}: {python} imports the current cosim ({root}), not a baseline; {HOW}")
     return Interpreter(str(python), root, env, label="baseline")
 
@@ -85,19 +91,21 @@ def interleaved_runs(configs: list[dict], interps: list[Interpreter], repeat: in
     return runs
 
 
-def medians(runs: list[dict]) -> list[dict]:
-    """Per configuration: the median of each measure per version and the current/baseline ratios."""
+def medians(runs: list[dict], reference: str) -> list[dict]:
+    """Per configuration: the median of each measure per version and the current/reference ratios
+    (``reference``: the other version's label)."""
     rows = {}
     for r in runs:
         key = (r["dim"], r["precision"], r["grid"], r["particles"])
         row = rows.setdefault(key, dict(zip(["dim", "precision", "grid", "particles"], key, strict=True)))
         row.setdefault(r["version"], []).append(r)
     for row in rows.values():
-        base, cur = row.pop("baseline"), row.pop("current")
+        ref, cur = row.pop(reference), row.pop("current")
+        row["reference"] = reference
         for m in MEASURES:
-            row[f"base_{m}"] = statistics.median(r[m] for r in base)
+            row[f"ref_{m}"] = statistics.median(r[m] for r in ref)
             row[f"cur_{m}"] = statistics.median(r[m] for r in cur)
-            row[f"ratio_{m}"] = row[f"cur_{m}"] / row[f"base_{m}"]
+            row[f"ratio_{m}"] = row[f"cur_{m}"] / row[f"ref_{m}"]
         row["runs_per_version"] = len(cur)
     return list(rows.values())
 
@@ -105,19 +113,28 @@ def medians(runs: list[dict]) -> list[dict]:
 def run_baseline_bench(
     out_dir: Path, configs: list[dict], folder: Path, repeat: int, name: str, command: str | None = None
 ) -> int:
-    """Measure ``configs`` with the baseline in ``folder`` and with this cosim; print and write
-    ``out_dir/<name>_baseline.csv`` (medians, ratios), ``<name>_baseline.md`` (the same, headed by ``command``,
-    the date and the hardware) and ``<name>_baseline_runs.csv`` (every run)."""
+    """Measure ``configs`` with the baseline in ``folder`` and with this cosim (``run_comparison``)."""
+    base = baseline_interpreter(folder)
+    print(f"baseline: {base.python} importing {base.root}/cosim; current: {current_interpreter().root}")
+    return run_comparison(out_dir, configs, base, "base", repeat, f"{name}_baseline", command)
+
+
+def run_comparison(
+    out_dir: Path, configs: list[dict], reference: Interpreter, short: str, repeat: int, name: str,
+    command: str | None = None,
+) -> int:  # fmt: skip
+    """Measure ``configs`` with ``reference`` and with this cosim, interleaved; print and write
+    ``out_dir/<name>.csv`` (medians, ratios), ``<name>.md`` (the same, headed by ``command``, the date
+    and the hardware) and ``<name>_runs.csv`` (every run). ``short``: the reference in column headers."""
     from cosim.hardware import hardware_line
 
-    base = baseline_interpreter(folder)
-    print(f"baseline: {base.python} importing {base.cosim_root}/cosim; current: {current_interpreter().cosim_root}")
-    runs = interleaved_runs(configs, [base, current_interpreter()], repeat)
-    rows = medians(runs)
-    print(f"\nCurrent / baseline on {hardware_line()}; medians of {repeat} interleaved runs per version (M/s)")
-    print_table(rows, TABLE)
-    write_csv(out_dir / f"{name}_baseline.csv", rows)
-    title = f"Current / baseline ({folder}): medians of {repeat} interleaved runs per version, rates in M/s"
-    write_report(out_dir / f"{name}_baseline.md", command, title, rows, TABLE)
-    write_csv(out_dir / f"{name}_baseline_runs.csv", runs)
+    runs = interleaved_runs(configs, [reference, current_interpreter()], repeat)
+    rows = medians(runs, reference.label)
+    columns = table(short)
+    what = f"Current / {reference.label}: medians of {repeat} interleaved runs per version, rates in M/s"
+    print(f"\n{what}, on {hardware_line()}")
+    print_table(rows, columns)
+    write_csv(out_dir / f"{name}.csv", rows)
+    write_report(out_dir / f"{name}.md", command, what, rows, columns)
+    write_csv(out_dir / f"{name}_runs.csv", runs)
     return 0

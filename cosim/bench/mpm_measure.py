@@ -184,6 +184,7 @@ def _time_gradient(engine, substeps: int, macro_steps: int, profile: bool) -> tu
     checkpoint recompute, backward kernel profile) of a seeded rollout. The last step's backward, which
     needs no recompute, is left out of the median when there are more."""
     import numpy as np
+    import taichi as ti
 
     zero = {k: np.zeros_like(v) for k, v in engine.state().items()}
     seed = dict(zero, x=np.ones_like(zero["x"]))
@@ -198,7 +199,8 @@ def _time_gradient(engine, substeps: int, macro_steps: int, profile: bool) -> tu
     g, bwd_s = seed, []
     for rec in reversed(records):
         t = time.perf_counter()
-        g = _vjp(engine, rec, g)
+        g = _vjp(engine, rec, g)  # the adjoint may stay on the device (``DeviceState``): wait for it
+        ti.sync()
         bwd_s.append(time.perf_counter() - t)
     recomputed = bwd_s[1:] or bwd_s
     return (
@@ -232,7 +234,27 @@ def measure(
     fwd_peak = _peak_mib()
     gradient = _engine(dim, cells, pts, substeps, scatter)
     c_grad, tape_s, bwd_s, prof_bwd = _time_gradient(gradient, substeps, macro_steps, profile)
-    peak = _peak_mib()
+    row = result_row(
+        dim, precision, cells, n, substeps, macro_steps, arch, (fwd_s, tape_s, bwd_s), (base, fwd_peak, _peak_mib())
+    )
+    return row | {
+        "threads": _threads() if arch == "cpu" else 0,
+        "scatter": getattr(gradient, "scatter", "serial" if arch == "cpu" else "atomic"),
+        "field_MiB": _field_mib(forward) + _field_mib(gradient),
+        "compile_s": c_fwd + c_grad,
+        "package": str(Path(cosim.__file__).parent),
+        **({"profile": {"forward": prof_fwd, "backward": prof_bwd}} if profile else {}),
+    }
+
+
+def result_row(
+    dim: int, precision: str, cells: int, n: int, substeps: int, macro_steps: int, arch: str,
+    times: tuple[float, float, float], peaks: tuple[float, float, float],
+) -> dict:  # fmt: skip
+    """The row's configuration, rates and memory from the median seconds of a macro step (forward alone,
+    recorded forward, backward) and the process's peak MiB (at the start, after the forward, at the end)."""
+    fwd_s, tape_s, bwd_s = times
+    base, fwd_peak, peak = peaks
     work = n * substeps  # per macro step: the times are medians of a macro step
     return {
         "dim": dim,
@@ -241,8 +263,6 @@ def measure(
         "particles": n,
         "steps": f"{substeps}x{macro_steps}",
         "arch": arch,
-        "threads": _threads() if arch == "cpu" else 0,
-        "scatter": getattr(gradient, "scatter", "serial" if arch == "cpu" else "atomic"),
         "fwd_Mpss": work / fwd_s / 1e6,
         "fwd_bwd_Mpss": work / (tape_s + bwd_s) / 1e6,
         "bwd_fwd_ratio": bwd_s / tape_s,
@@ -250,11 +270,7 @@ def measure(
         "peak_MiB": peak,
         "fwd_B_per_particle": (fwd_peak - base) * 2**20 / n,
         "grad_B_per_particle": (peak - fwd_peak) * 2**20 / n,
-        "field_MiB": _field_mib(forward) + _field_mib(gradient),
         "device_MiB": _device_mib(arch),
-        "compile_s": c_fwd + c_grad,
-        "cosim": str(Path(cosim.__file__).parent),
-        **({"profile": {"forward": prof_fwd, "backward": prof_bwd}} if profile else {}),
     }
 
 

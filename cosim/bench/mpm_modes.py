@@ -17,6 +17,7 @@ from cosim.bench.mpm import (
     size_configs,
 )
 from cosim.bench.mpm_baseline import run_baseline_bench
+from cosim.bench.mpm_peer import peer_configs, run_peer_bench
 from cosim.engines.arch import SCATTERS
 from cosim.errors import InputError
 from cosim.guards import announce
@@ -25,13 +26,15 @@ from cosim.guards import announce
 def run_mpm_bench(
     out_dir: Path, quick: bool = False, sizes: bool = False, baseline: Path | None = None, repeat: int = 3,
     profile: bool = False, command: str | None = None, arch: str = "cpu", threads: list[int] | None = None,
-    scatters: list[str] | None = None, particles: int | None = None,
+    scatters: list[str] | None = None, particles: int | None = None, peer: str | None = None,
 ) -> int:  # fmt: skip
     """``cosim bench mpm``: the chosen mode (module docstring) into ``out_dir``; returns the exit code."""
-    check_mode(sizes, baseline, profile, arch, threads, scatters, particles)
+    check_mode(sizes, baseline, profile, arch, threads, scatters, particles, peer)
     announce(GUARDS_OFF)
     out_dir.mkdir(parents=True, exist_ok=True)
-    if particles:
+    if peer:
+        configs, name = peer_configs(quick), "mpm"
+    elif particles:
         configs, name = [particle_config(particles, quick)], "mpm_particles"
     elif sizes:
         configs, name = size_configs(quick), "mpm_sizes"
@@ -45,6 +48,8 @@ def run_mpm_bench(
             return run_profile(out_dir, command=command)
         if baseline is not None:
             return run_baseline_bench(out_dir, configs, baseline, repeat, name, command)
+        if peer:
+            return run_peer_bench(out_dir, configs, peer, repeat, name, command)
         return run_throughput(out_dir, configs, name, command)
     except RuntimeError as err:
         print(err, file=sys.stderr)
@@ -53,9 +58,11 @@ def run_mpm_bench(
 
 def check_mode(
     sizes: bool, baseline: Path | None, profile: bool, arch: str, threads: list[int] | None,
-    scatters: list[str] | None, particles: int | None,
+    scatters: list[str] | None, particles: int | None, peer: str | None = None,
 ) -> None:  # fmt: skip
     """An InputError naming the flags that do not go together, or a scatter that does not exist."""
+    if peer and (sizes or baseline is not None or profile or threads or scatters or particles):
+        raise InputError("--peer compares its own sizes on the default settings; give it with --arch, --repeat only")
     if profile and (sizes or baseline is not None or threads or scatters or particles or arch != "cpu"):
         raise InputError("--profile runs alone (3D 64³ float32 on the CPU); leave out the other mpm flags")
     if threads and arch != "cpu":

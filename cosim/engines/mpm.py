@@ -14,6 +14,7 @@ knows sources and hooks only through their methods, never by type.
 """
 
 import weakref
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -21,6 +22,7 @@ import numpy as np
 from cosim.engines.contract import declares
 from cosim.engines.data_oriented import data_oriented
 from cosim.engines.mpm_adjoint import MPMAdjointKernels
+from cosim.engines.mpm_checkpoints import CheckpointStore, DeviceState
 from cosim.engines.mpm_energy import TERMS as ENERGY_TERMS
 from cosim.engines.mpm_energy import EnergyMeter
 from cosim.engines.mpm_inputs import STATE_KEYS, MPMConfig, ParticleBody
@@ -34,7 +36,7 @@ __all__ = ["STATE_KEYS", "MPMConfig", "MPMEngine", "MPMRecord", "ParticleBody"]
 class MPMRecord:
     """What ``vjp`` needs about one macro step."""
 
-    state: dict[str, np.ndarray] | None  # before the step; None while the tape holds no checkpoint of it
+    state: Mapping | None  # before the step (host arrays or a DeviceState); None while the tape holds none
     dt: float  # [s] substep
     substeps: int
     impulse: np.ndarray | None = None  # (N, d) [N s]
@@ -42,19 +44,23 @@ class MPMRecord:
     token: int = -1  # the engine's id of this forward step (lets vjp skip a recompute)
     precision: type = np.float64  # the engine's, in which a kept checkpoint is stored (exactly: it was read from it)
 
-    def keep_checkpoint(self, state: dict[str, np.ndarray] | None) -> None:
-        """Hold ``state`` (the state before the step) in the engine's precision, or release it (None):
-        the tape then recomputes it from an earlier checkpoint (``MPMEngine.replay``)."""
-        self.state = None if state is None else {k: v.astype(self.precision, copy=False) for k, v in state.items()}
+    def keep_checkpoint(self, state: Mapping | None) -> None:
+        """Hold ``state`` (the state before the step) in the engine's precision (a ``DeviceState`` is),
+        or release it (None): the tape then recomputes it from an earlier checkpoint (``MPMEngine.replay``)."""
+        if state is None or isinstance(state, DeviceState):
+            self.state = state
+        else:
+            self.state = {k: v.astype(self.precision, copy=False) for k, v in state.items()}
 
     @property
     def nbytes(self) -> int:
-        arrays = list((self.state or {}).values()) + ([] if self.impulse is None else [self.impulse])
-        return sum(a.nbytes for a in arrays) + sum(_nbytes(b) for b in self.boundaries.values())
+        """Memory the record holds [bytes], on the host or (a ``DeviceState``) on the device."""
+        return _nbytes(self.state) + _nbytes(self.impulse) + sum(_nbytes(b) for b in self.boundaries.values())
 
 
 def _nbytes(value) -> int:
-    """Bytes of the arrays in a source's boundary states (nested dicts allowed: a cloth's tracking state)."""
+    """Bytes of the arrays in a value: an array, a ``DeviceState``, boundary states (nested dicts allowed:
+    a cloth's tracking state); 0 for None."""
     if isinstance(value, dict):
         return sum(_nbytes(v) for v in value.values())
     return getattr(value, "nbytes", 0)
@@ -74,6 +80,7 @@ class MPMEngine(MPMAdjointKernels):
         self._views: list = []  # weak references to the SlotState views handed out
         self._previous_start = -1  # forward only: the slot the last step started from
         self.state_version = 0  # changes whenever the current state does (``_forget``)
+        self.checkpoints = CheckpointStore(self, config.checkpoints)  # gradients: states kept between steps
         super().__init__(config, bodies)
         self._material = self.material()  # E, nu per body now: the derived quantities' one source
         self._energy_meter = EnergyMeter(self)
@@ -157,12 +164,17 @@ class MPMEngine(MPMAdjointKernels):
             out[body.name] = terms
         return out
 
+    def control_work(self) -> float:
+        """[J] Kinetic energy the last step's control impulses added: sum I . v + |I|^2 / 2m over the
+        particles, v before the step (summed on the device; 0 without controls)."""
+        if self.control is None:
+            return 0.0
+        return self._energy_meter.control_work(0 if self.cfg.requires_grad else self._previous_start)
+
     def set_state(self, state: dict[str, np.ndarray]) -> None:
         """Restore a state from ``state()`` (or a step's); the next step starts from it bit for bit."""
-        values = {k: state[k] for k in STATE_KEYS}  # read first: ``state`` may live in slot 0
-        self._forget(0)
-        for k in STATE_KEYS:
-            self._put(getattr(self, k), 0, values[k])
+        self._forget(0)  # a view of slot 0 (``state`` itself, maybe) reads it first
+        self.checkpoints.write(state, self._state_fields(), 0)
         self._slot = 0
         self._resident = -1
 
@@ -213,11 +225,11 @@ class MPMEngine(MPMAdjointKernels):
         self._known_state = self._snapshot()
         return {"state": self._known_state, "reactions": reactions, "health": self.health()}, record
 
-    def _snapshot(self) -> dict[str, np.ndarray] | SlotState:
-        """The current state for a record or the outputs: read now with gradients (the tape keeps it),
-        else left on the device until something reads it."""
+    def _snapshot(self) -> Mapping:
+        """The current state for a record or the outputs: with gradients a copy the tape keeps (on the
+        device while it fits, ``CheckpointStore``), else a view of its slot, read when something reads it."""
         if self.cfg.requires_grad:
-            return self.state()
+            return self.checkpoints.read(self._state_fields(), self._slot)
         view = SlotState(self, self._slot)
         self._views = [ref for ref in self._views if ref() is not None] + [weakref.ref(view)]
         return view
@@ -269,8 +281,8 @@ class MPMEngine(MPMAdjointKernels):
             self._slot = K
         self._binned = None  # the backward's lists made afresh too, whether or not it recomputed
         self._zero_grad()
-        for k in STATE_KEYS:  # before the reactions': a source's added mass adds to the end state's adjoint
-            self._put(getattr(self, k).grad, K, grad_outputs["state"][k])
+        # before the reactions': a source's added mass adds to the end state's adjoint
+        self.checkpoints.write(grad_outputs["state"], self._adjoint_fields(), K)
         reaction_grads = grad_outputs.get("reactions") or {}
         for name, source in self.boundaries.items():
             if name in reaction_grads:
@@ -279,7 +291,7 @@ class MPMEngine(MPMAdjointKernels):
             self._substep_grad(s, dt, share)
         self._resident = -1
         out = {
-            "state": {k: self._get(getattr(self, k).grad, 0) for k in STATE_KEYS},
+            "state": self.checkpoints.read(self._adjoint_fields(), 0),  # on the device while it fits
             "boundaries": {name: source.state_grads(K) for name, source in self.boundaries.items()},
             "E": self.E.grad.to_numpy().astype(np.float64),
             "nu": self.nu.grad.to_numpy().astype(np.float64),
@@ -288,7 +300,7 @@ class MPMEngine(MPMAdjointKernels):
             out["impulse"] = self.control.grad.to_numpy()[: self.n_particles].astype(np.float64)
         return out
 
-    def replay(self, start: dict[str, np.ndarray], records: list[MPMRecord]) -> list[dict[str, np.ndarray]]:
+    def replay(self, start: Mapping, records: list[MPMRecord]) -> list[Mapping]:
         """The state after each of ``records``' steps, recomputed from ``start`` (the state before the
         first) with each step's recorded dt, substeps, impulse and boundaries: the forward's states, bit
         for bit with the serial scatter (to round-off with atomics). Leaves the engine after the last."""
@@ -297,7 +309,7 @@ class MPMEngine(MPMAdjointKernels):
         for r in records:
             self._write_boundaries(r.boundaries)
             self.advance(r.dt, r.substeps, r.impulse)
-            after.append(self.state())
+            after.append(self._snapshot())
         return after
 
     def _write_boundaries(self, boundaries: dict) -> None:
@@ -343,6 +355,12 @@ class MPMEngine(MPMAdjointKernels):
             view = ref()
             if view is not None and view._engine is self and view._slot in written:
                 view.detach()
+
+    def _state_fields(self) -> tuple:
+        return tuple(getattr(self, k) for k in STATE_KEYS)
+
+    def _adjoint_fields(self) -> tuple:
+        return tuple(getattr(self, k).grad for k in STATE_KEYS)
 
     def read_slot(self, key: str, slot: int) -> np.ndarray:
         """State key ``key`` (of ``STATE_KEYS``) of the particles in ``slot``, float64 on the host."""

@@ -64,6 +64,26 @@ class EnergyMeter:
             for k in ti.static(range(4)):
                 out[c, k] = sums[k]
 
+    @ti.kernel
+    def _chunk_control_work(self, slot: ti.i32, chunks: ti.types.ndarray(), out: ti.types.ndarray()):
+        """Per chunk c, into ``out[c]``: sum I . v + |I|^2 / 2m of its particles, I the control impulse."""
+        e = self.engine
+        ti.loop_config(serialize=e.serial_particle_loops)
+        for c in range(chunks.shape[0]):
+            m = e.p_mass[chunks[c, 2]]
+            work = ti.cast(0.0, ti.f64)
+            for p in range(chunks[c, 0], chunks[c, 1]):
+                impulse = e.control[p]
+                work += ti.cast(impulse.dot(e.v[slot, p]) + impulse.norm_sqr() / (2.0 * m), ti.f64)
+            out[c] = work
+
+    def control_work(self, slot: int) -> float:
+        """[J] Kinetic energy the control impulses (``engine.control``) add to the particles in ``slot``
+        (their velocities before the impulses): sum I . v + |I|^2 / 2m."""
+        out = np.zeros(len(self.chunks))
+        self._chunk_control_work(slot, self.chunks, out)
+        return float(out.sum())
+
     def body_sums(self, slot: int) -> np.ndarray:
         """(bodies, 4) float64: per body the ``TERMS`` of the particles in ``slot``."""
         out = np.zeros((len(self.chunks), len(TERMS)))

@@ -46,6 +46,7 @@ class MPMConfig:
     grad_substeps: int = 1  # gradient mode: substeps per macro step (slots = this + 1)
     has_controls: bool = False
     scatter: str | None = None  # "serial" | "coloured" | "atomic" (``cosim.engines.arch``); None: by the arch
+    checkpoints: str = "auto"  # gradients: "auto" | "device" | "host" (``cosim.engines.mpm_checkpoints``)
 
 
 STATE_KEYS = ("x", "v", "C", "F")

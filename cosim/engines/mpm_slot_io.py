@@ -9,6 +9,7 @@ import numpy as np
 import taichi as ti
 
 from cosim.engines.data_oriented import data_oriented
+from cosim.engines.mpm_watch import non_finite
 
 
 @data_oriented
@@ -46,6 +47,49 @@ class SlotIO:
             else:
                 for i, j in ti.static(ti.ndrange(fld.n, fld.m)):
                     fld[slot, p][i, j] = src[p, i, j]
+
+    @ti.kernel
+    def _copy_state(
+        self,
+        x: ti.template(),
+        v: ti.template(),
+        C: ti.template(),
+        F: ti.template(),
+        slot: ti.i32,
+        ax: ti.types.ndarray(),
+        av: ti.types.ndarray(),
+        aC: ti.types.ndarray(),
+        aF: ti.types.ndarray(),
+        to_arrays: ti.template(),
+    ):
+        """Copy slot ``slot`` of x, v, C, F (or their adjoints) into device arrays (n, d) and (n, d, d)
+        (``to_arrays``), or the arrays into the slot."""
+        ti.loop_config(serialize=self.serial_particle_loops)
+        for p in range(self.count[None]):
+            for i in ti.static(range(self.dim)):
+                if ti.static(to_arrays):
+                    ax[p, i], av[p, i] = x[slot, p][i], v[slot, p][i]
+                else:
+                    x[slot, p][i], v[slot, p][i] = ax[p, i], av[p, i]
+                for j in ti.static(range(self.dim)):
+                    if ti.static(to_arrays):
+                        aC[p, i, j], aF[p, i, j] = C[slot, p][i, j], F[slot, p][i, j]
+                    else:
+                        C[slot, p][i, j], F[slot, p][i, j] = aC[p, i, j], aF[p, i, j]
+
+    @ti.kernel
+    def _count_nonfinite(
+        self, x: ti.types.ndarray(), v: ti.types.ndarray(), C: ti.types.ndarray(), F: ti.types.ndarray()
+    ) -> ti.i32:
+        """How many entries of the four device arrays are NaN or infinite."""
+        bad = 0
+        ti.loop_config(serialize=self.serial_particle_loops)
+        for p in range(self.count[None]):
+            for i in ti.static(range(self.dim)):
+                bad += ti.cast(non_finite(x[p, i]), ti.i32) + ti.cast(non_finite(v[p, i]), ti.i32)
+                for j in ti.static(range(self.dim)):
+                    bad += ti.cast(non_finite(C[p, i, j]), ti.i32) + ti.cast(non_finite(F[p, i, j]), ti.i32)
+        return bad
 
     @ti.kernel
     def _write_vectors(self, fld: ti.template(), src: ti.types.ndarray()):

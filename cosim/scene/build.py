@@ -99,6 +99,7 @@ def build_system(scene: Scene, requires_grad: bool = False, steps: int | None = 
         grad_substeps=stepping.grad_substeps if requires_grad else 1,
         has_controls=bool(scene.controls),
         scatter=None if scene.mpm.scatter == "auto" else scene.mpm.scatter,
+        checkpoints=scene.gradient.checkpoints,
     )
     mpm = MPMEngine(cfg, bodies)
     mpm.set_state({**mpm.state(), "C": affine})  # a ParticleBody carries x, v and F; C enters by the contract

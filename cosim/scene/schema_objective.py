@@ -79,6 +79,9 @@ class GradientSpec(Strict):
     # every gradient run (gradcheck, optimize): the tape keeps the MPM state of every k-th macro step
     # and recomputes the others in the backward pass: S/k states instead of S, about one more forward
     checkpoint_every: Annotated[int, Field(ge=1)] = 1
+    # where the tape keeps the MPM checkpoints and state adjoints: on the engine's device while they fit its
+    # budget (auto), always there (device), or as host arrays (host; frees the device's memory)
+    checkpoints: Literal["auto", "device", "host"] = "auto"
 
 
 class OptimizeSpec(Strict):
