@@ -31,11 +31,13 @@ def materials(name, at):  # the material template argument of each compiled inst
 
 
 compiled = {"_p2g": materials("_p2g", 2), "_g2p_advect": materials("_g2p_advect", 1)}  # (after self, scatter)
+compiled["_substep_fused"] = len(type(mpm)._substep_fused._primal.mapper.mapping)  # its materials: the engine's
 print(json.dumps({
     "modules": sorted(m for m in sys.modules if m.split(".")[0] == "dartpy" or m.startswith(("cosim.engines.rigid", "cosim.engines.cloth"))),
     "hooks": len(mpm.grid_hooks) + len(mpm.particle_hooks),
     "grad_buffers": [placed(getattr(mpm, k).grad) for k in ("x", "v", "C", "F")],
     "materials_compiled": compiled,
+    "engine_materials": sorted({type(m).__name__ for m in mpm.materials}),
 }))
 """
 
@@ -49,4 +51,6 @@ def test_a_pure_mpm_run_builds_imports_and_compiles_only_the_mpm():
     assert seen["modules"] == []  # neither dartpy nor our rigid or cloth engines
     assert seen["hooks"] == 0  # no contact model on the grid or the particles
     assert seen["grad_buffers"] == [False] * 4
-    assert seen["materials_compiled"] == {"_p2g": ["Elastic"], "_g2p_advect": ["Elastic"]}  # no return mapping
+    # the forward substep is one kernel over the engine's materials, compiled once; the separate ones never
+    assert seen["materials_compiled"] == {"_p2g": [], "_g2p_advect": [], "_substep_fused": 1}
+    assert seen["engine_materials"] == ["Elastic"]  # no return mapping

@@ -101,6 +101,10 @@ class GridContact:
     @ti.kernel
     def _scatter_liquid(self, src: ti.i32, g: ti.i32):
         """Per node, the liquid's volume fraction sum_p w_ip V_p / dx^dim and mass sum_p w_ip m_p."""
+        self._scatter_liquid_pass(src, g)
+
+    @ti.func
+    def _scatter_liquid_pass(self, src, g):
         e = self.engine
         ti.loop_config(serialize=e.serial_particle_loops)
         for p in range(e.count[None]):
@@ -154,6 +158,8 @@ class GridContact:
         t = ti.min(ti.max((fullest - DENSE_FILL[0]) / (DENSE_FILL[1] - DENSE_FILL[0]), 0.0), 1.0)
         return t * t * (3.0 - 2.0 * t)
 
+    # The loops of ``_occupy`` and ``_apply`` are written in their kernels, not inlined from a ``ti.func``
+    # (Taichi differentiates both and refuses such a loop), and again in ``forward_pass``.
     @ti.kernel
     def _occupy(self, g: ti.i32, s: ti.i32):
         """Per node next to liquid, the share of its cell inside the bodies (``occupancy``, summed, at
@@ -161,14 +167,19 @@ class GridContact:
         e = self.engine
         ti.loop_config(serialize=e.serial_grid_loops)
         for I in ti.grouped(ti.ndrange(*[(e.active_lo[g][k], e.active_hi[g][k]) for k in ti.static(range(e.dim))])):
-            if self._near_liquid(g, I):
-                xi = ti.cast(I, float) * e.dx
-                inside = 0.0
-                for src in ti.static(self.sources):
-                    if ti.static(self._held_by_liquid(src)):
-                        for b in ti.static(range(src.n)):
-                            inside += occupancy(src.distance(s, b, xi, -1), e.dx)
-                self.solid[g, I] = ti.min(inside, 1.0)
+            self._occupy_node(g, I, s)
+
+    @ti.func
+    def _occupy_node(self, g, I, s):
+        e = self.engine
+        if self._near_liquid(g, I):
+            xi = ti.cast(I, float) * e.dx
+            inside = 0.0
+            for src in ti.static(self.sources):
+                if ti.static(self._held_by_liquid(src)):
+                    for b in ti.static(range(src.n)):
+                        inside += occupancy(src.distance(s, b, xi, -1), e.dx)
+            self.solid[g, I] = ti.min(inside, 1.0)
 
     @ti.func
     def _liquid_reach(self, g, I, d, n):
@@ -195,28 +206,47 @@ class GridContact:
         e = self.engine
         ti.loop_config(serialize=e.serial_grid_loops)
         for I in ti.grouped(ti.ndrange(*[(e.active_lo[g][k], e.active_hi[g][k]) for k in ti.static(range(e.dim))])):
-            v = self.upstream.velocity(g, I)
-            m = e.node_mass(g, I)
-            xi = ti.cast(I, float) * e.dx
-            if m > 0:  # empty nodes need no boundary lookup
-                for src in ti.static(self.sources):
-                    for b in ti.static(range(src.n)):
-                        d, n = src.distance_normal(s, b, xi, -1)
-                        gap = d - ti.static(self._band_of(src))
-                        if ti.static(self._liquid_held_at(src)):  # noqa: SIM102 (compile-time, then run-time)
-                            # beyond LIQUID_REACH cells the liquid's gap exceeds a cell whatever its fill (it
-                            # reaches at most about 1.2 cells past a node), so both gaps leave the node free
-                            if d < LIQUID_REACH * e.dx:
-                                share = ti.min(self.liquid[g, I][1] / m, 1.0) * self._dense_liquid(g, I)
-                                gap += LIQUID_BAND_SHIFT * e.dx * share
-                                gap = ti.min(gap, d - e.dx * self._liquid_reach(g, I, d, n))
-                        # a node a cell beyond keeps its velocity unless material crosses a cell per substep
-                        if gap < e.dx:
-                            vc = src.contact_velocity(s, b, xi, -1)
-                            v_new = speculative_bc(v, n, vc, self.friction, ti.max(gap, 0.0), dt)
-                            src.add_reaction(s, b, xi, m * (v_new - v), -1)  # momentum given to the material
-                            v = v_new
-            self.output[g, I] = v
+            self._apply_node(g, I, s, dt)
+
+    @ti.func
+    def _apply_node(self, g, I, s, dt):
+        """Node I: the bodies' speculative contact on the upstream velocity, their reactions; into ``output``."""
+        e = self.engine
+        v = self.upstream.velocity(g, I)
+        m = e.node_mass(g, I)
+        xi = ti.cast(I, float) * e.dx
+        if m > 0:  # empty nodes need no boundary lookup
+            for src in ti.static(self.sources):
+                for b in ti.static(range(src.n)):
+                    d, n = src.distance_normal(s, b, xi, -1)
+                    gap = d - ti.static(self._band_of(src))
+                    if ti.static(self._liquid_held_at(src)):  # noqa: SIM102 (compile-time, then run-time)
+                        # beyond LIQUID_REACH cells the liquid's gap exceeds a cell whatever its fill (it
+                        # reaches at most about 1.2 cells past a node), so both gaps leave the node free
+                        if d < LIQUID_REACH * e.dx:
+                            share = ti.min(self.liquid[g, I][1] / m, 1.0) * self._dense_liquid(g, I)
+                            gap += LIQUID_BAND_SHIFT * e.dx * share
+                            gap = ti.min(gap, d - e.dx * self._liquid_reach(g, I, d, n))
+                    # a node a cell beyond keeps its velocity unless material crosses a cell per substep
+                    if gap < e.dx:
+                        vc = src.contact_velocity(s, b, xi, -1)
+                        v_new = speculative_bc(v, n, vc, self.friction, ti.max(gap, 0.0), dt)
+                        src.add_reaction(s, b, xi, m * (v_new - v), -1)  # momentum given to the material
+                        v = v_new
+        self.output[g, I] = v
+
+    @ti.func
+    def forward_pass(self, src, g, s, dt):
+        """``apply``'s loops, inlined in the engine's one-launch substep (``MPMKernels._substep_fused``)."""
+        e = self.engine
+        if ti.static(self._reads_liquid()):
+            self._scatter_liquid_pass(src, g)
+            ti.loop_config(serialize=e.serial_grid_loops)
+            for I in ti.grouped(ti.ndrange(*[(e.active_lo[g][k], e.active_hi[g][k]) for k in ti.static(range(e.dim))])):
+                self._occupy_node(g, I, s)
+        ti.loop_config(serialize=e.serial_grid_loops)
+        for I in ti.grouped(ti.ndrange(*[(e.active_lo[g][k], e.active_hi[g][k]) for k in ti.static(range(e.dim))])):
+            self._apply_node(g, I, s, dt)
 
     @ti.func
     def velocity(self, g, I):

@@ -104,7 +104,9 @@ class MPMEngine(MPMAdjointKernels):
         macro step, particles in slot src, grid copy g; ``apply_grad(src, g, s, dt)``;
         ``zero_grad()`` (its own adjoints only). Its grid passes loop over grid copy g's box
         [``active_lo[g]``, ``active_hi[g]``), the nodes the particles reach (``_clear_box``); a hook
-        that reads or writes nodes up to k beyond them sets ``hook.box_margin = k``.
+        that reads or writes nodes up to k beyond them sets ``hook.box_margin = k``. A hook with a
+        ``@ti.func forward_pass(src, g, s, dt)`` doing what ``apply`` does lets a forward-only substep run
+        as one launch (``MPMKernels._substep_fused``); without one the substep's phases launch apart.
         """
         self._check_unspecialised("grid hooks")
         upstream = self._grid_out

@@ -78,6 +78,7 @@ class MPMKernels(StencilFunctions, SlotIO, ParticleBins, P2GKernels):
         self.p_vol = field_pool.scalar(self, float, shape=nb)
         self.p_radius = field_pool.scalar(self, float, shape=nb)  # [m] half the lattice spacing
         self.p_liquid = field_pool.scalar(self, ti.i32, shape=nb)  # 1 for a liquid body
+        self.body_range = field_pool.vector(self, 2, ti.i32, shape=nb)  # its particles' [start, end)
         self.body_id = field_pool.scalar(self, ti.i32, shape=n)  # which body each particle belongs to
         # Grid and per-particle stress scratch: one copy per substep with
         # gradients (the adjoint reads them back instead of recomputing P2G),
@@ -112,6 +113,8 @@ class MPMKernels(StencilFunctions, SlotIO, ParticleBins, P2GKernels):
         self.p_radius.from_numpy(self._real([0.5 * b.particle_volume ** (1.0 / d) for b in bodies]))
         self.p_liquid.from_numpy(np.array([b.material == "liquid" for b in bodies], dtype=np.int32))
         self.count[None] = self.n_particles
+        self.body_range.from_numpy(np.array(self.ranges, dtype=np.int32))
+        self.fuse_substeps = True  # a forward-only substep in one launch where it can be (``_fused``)
         self.mass = np.concatenate([np.full(b.n, b.particle_mass) for b in bodies])
         self.body_id.from_numpy(
             self.padded(np.concatenate([np.full(b.n, i, dtype=np.int32) for i, b in enumerate(bodies)]))
@@ -210,38 +213,53 @@ class MPMKernels(StencilFunctions, SlotIO, ParticleBins, P2GKernels):
     @ti.kernel
     def _grid_update(self, g: ti.i32, dt: float, mass_floor: float):
         """Momentum to velocity, gravity and domain walls over the active nodes (``_p2g``); nodes
-        outside keep stale velocities, which no gather reads."""
+        outside keep stale velocities, which no gather reads. Its loop is written here, not inlined from a
+        ``ti.func``: Taichi differentiates this kernel (``_grid_update.grad``) and refuses such a loop."""
         ti.loop_config(serialize=self.serial_grid_loops)
         for I in ti.grouped(
             ti.ndrange(*[(self.active_lo[g][k], self.active_hi[g][k]) for k in ti.static(range(self.dim))])
         ):
-            m = self.node_mass(g, I)
-            vel = ti.Vector.zero(float, self.dim)
-            if m > mass_floor:
-                vel = self.node_momentum(g, I) / m + dt * self.gravity
-                if ti.static(self.cfg.wall != "none"):
-                    for k in ti.static(range(self.dim)):
-                        # in a wall's band, the speed towards the wall is taken away (slip) or the whole
-                        # velocity (sticky), rounded over WALL_SOFT (``soft_ramp``: C2 where a node at rest
-                        # against a wall starts to approach it, never more than the exact projection)
-                        toward = 0.0
-                        if I[k] < self.cfg.wall_cells:
-                            toward = -1.0
-                        elif I[k] > self.nodes[k] - 1 - self.cfg.wall_cells:
-                            toward = 1.0
-                        approach = toward * vel[k]
-                        if approach > 0:
-                            removed = soft_ramp(approach, WALL_SOFT)
-                            if ti.static(self.cfg.wall == "sticky"):
-                                vel *= 1.0 - removed / approach
-                            else:
-                                vel[k] -= toward * removed
-            self.grid_v[g, I] = vel
-            if ti.static(self._fused_clear()):
-                # forward-only: leave the grid cleared for the next P2G (saves a pass);
-                # with gradients the backward pass reads these values back, and
-                # a contact hook reads the masses after this kernel
-                self.grid_mm[g, I] = ti.Vector.zero(float, self.dim + 1)
+            self._grid_node_update(g, I, dt, mass_floor)
+
+    @ti.func
+    def _grid_update_pass(self, g, dt, mass_floor):
+        """``_grid_update``'s loop, for the fused substep (``_substep_fused``)."""
+        ti.loop_config(serialize=self.serial_grid_loops)
+        for I in ti.grouped(
+            ti.ndrange(*[(self.active_lo[g][k], self.active_hi[g][k]) for k in ti.static(range(self.dim))])
+        ):
+            self._grid_node_update(g, I, dt, mass_floor)
+
+    @ti.func
+    def _grid_node_update(self, g, I, dt, mass_floor):
+        """Node I of grid copy g: its velocity from its momentum, gravity and the walls."""
+        m = self.node_mass(g, I)
+        vel = ti.Vector.zero(float, self.dim)
+        if m > mass_floor:
+            vel = self.node_momentum(g, I) / m + dt * self.gravity
+            if ti.static(self.cfg.wall != "none"):
+                for k in ti.static(range(self.dim)):
+                    # in a wall's band, the speed towards the wall is taken away (slip) or the whole
+                    # velocity (sticky), rounded over WALL_SOFT (``soft_ramp``: C2 where a node at rest
+                    # against a wall starts to approach it, never more than the exact projection)
+                    toward = 0.0
+                    if I[k] < self.cfg.wall_cells:
+                        toward = -1.0
+                    elif I[k] > self.nodes[k] - 1 - self.cfg.wall_cells:
+                        toward = 1.0
+                    approach = toward * vel[k]
+                    if approach > 0:
+                        removed = soft_ramp(approach, WALL_SOFT)
+                        if ti.static(self.cfg.wall == "sticky"):
+                            vel *= 1.0 - removed / approach
+                        else:
+                            vel[k] -= toward * removed
+        self.grid_v[g, I] = vel
+        if ti.static(self._fused_clear()):
+            # forward-only: leave the grid cleared for the next P2G (saves a pass);
+            # with gradients the backward pass reads these values back, and
+            # a contact hook reads the masses after this kernel
+            self.grid_mm[g, I] = ti.Vector.zero(float, self.dim + 1)
 
     @ti.kernel
     def _g2p_advect(
@@ -261,6 +279,11 @@ class MPMKernels(StencilFunctions, SlotIO, ParticleBins, P2GKernels):
         field from the grid (``source.velocity``) into slot ``dst``, flag NaN / inf for substep s
         (``mpm_watch``), move the particles and update F with the material's return mapping. One kernel,
         not two: a launch and a pass over v and C fewer per substep. Its adjoint is split (``mpm_adjoint``)."""
+        self._g2p_pass(mat, b, start, end, src, dst, g, source, s, dt)
+
+    @ti.func
+    def _g2p_pass(self, mat: ti.template(), b, start, end, src, dst, g, source: ti.template(), s, dt):
+        """``_g2p_advect``'s loop (inlined in it, and in the fused substep)."""
         ti.loop_config(serialize=self.serial_particle_loops)
         for p in range(start, end):
             xp = self.x[src, p]
@@ -332,9 +355,43 @@ class MPMKernels(StencilFunctions, SlotIO, ParticleBins, P2GKernels):
             self._g2p_advect(mat, b, lo, hi, src, dst, g, self._grid_out, s, dt)
 
     def _substep(self, src: int, dst: int, dt: float, control_share: float, s: int) -> None:
+        if self._fused():
+            self._substep_fused(src, dst, s, dt, control_share, self._mass_floor())
+            return
         self.pre_coupling(src, s, dt, control_share)
         self.coupling(src, s, dt)
         self.post_coupling(src, dst, dt, s)
+
+    def _fused(self) -> bool:
+        """Whether a substep is one launch (``_substep_fused``): allowed (``fuse_substeps``), forward-only, a
+        scatter of one pass (not the coloured one's pass per colour), no boundary source preparing substeps,
+        no particle hooks, and every grid hook with a ``forward_pass``."""
+        return (
+            self.fuse_substeps
+            and not self.cfg.requires_grad
+            and self.scatter != "coloured"
+            and not self.substep_preparers
+            and not self.particle_hooks
+            and all(hasattr(hook, "forward_pass") for hook in self.grid_hooks)
+        )
+
+    @ti.kernel
+    def _substep_fused(self, src: ti.i32, dst: ti.i32, s: ti.i32, dt: float, control_share: float, floor: float):
+        """A forward-only substep in one launch: each body's P2G, the grid update, each grid hook's
+        ``forward_pass`` and each body's G2P, the passes' loops run in this order as the kernel's parallel
+        tasks, on the same functions as the substep's separate kernels (the same numbers bit for bit).
+        A launch costs tens of microseconds of Python and Taichi, as much as a small scene's loops."""
+        clear = ti.static(not self._fused_clear())  # else the grid update cleared the grid
+        for b in ti.static(range(len(self.bodies))):
+            lo, hi = self.body_range[b][0], self.body_range[b][1]
+            self._p2g_pass(self.scatter, self.materials[b], b, lo, hi, src, 0, dt, control_share,
+                           b == 0, 0, clear and b == 0, 1)  # fmt: skip
+        self._grid_update_pass(0, dt, floor)
+        for hook in ti.static(self.grid_hooks):
+            hook.forward_pass(src, 0, s, dt)
+        for b in ti.static(range(len(self.bodies))):
+            lo, hi = self.body_range[b][0], self.body_range[b][1]
+            self._g2p_pass(self.materials[b], b, lo, hi, src, dst, 0, self._grid_out, s, dt)
 
 
 def _check_gradient_build(requires_grad: bool) -> None:

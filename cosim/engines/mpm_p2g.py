@@ -1,7 +1,7 @@
 """P2G, the scatter from particles to the grid: ``P2GKernels``, a base of ``MPMKernels``.
 
-One launch per body (per colour with the coloured scatter, ``cosim.engines.mpm_bins``) holds three
-loops: the clear of the grid box the last substep wrote, the body's stress (its affine momentum), and
+One launch per body (per colour with the coloured scatter, ``cosim.engines.mpm_bins``), or a pass of
+the fused forward substep (``MPMKernels._substep_fused``), holds three loops: the clear of the grid box the last substep wrote, the body's stress (its affine momentum), and
 the scatter, which also bounds the box the next grid passes cover. Its functions read the engine's
 fields (``x``, ``v``, ``C``, ``F``, ``affine``, ``grid_mm``, ``grid_v``, ``active_lo`` / ``active_hi``),
 settings (``dim``, ``dx``, ``nodes``, ``box_margin``, ``bounded_grid``, the loop flags) and hooks.
@@ -93,6 +93,26 @@ class P2GKernels:
         clear: ti.i32,
         stress: ti.i32,
     ):
+        """One body's (one colour's) P2G: ``_p2g_pass``."""
+        self._p2g_pass(scatter, mat, b, start, end, src, g, dt, control_share, first_body, colour, clear, stress)
+
+    @ti.func
+    def _p2g_pass(
+        self,
+        scatter: ti.template(),
+        mat: ti.template(),
+        b,
+        start,
+        end,
+        src,
+        g,
+        dt,
+        control_share,
+        first_body,
+        colour,
+        clear,
+        stress,
+    ):
         """Scatter mass and momentum, and bound the nodes written: the box [active_lo, active_hi) of grid
         copy g, which the grid passes loop over (a body usually covers a small part of the domain), started
         afresh by the first body's scatter, widened by ``box_margin`` nodes on every side (a grid hook
@@ -101,7 +121,8 @@ class P2GKernels:
         block's particles in index order on one thread with plain adds (a launch per colour: one compiled
         copy, not 2^d); "atomic", every particle in parallel with atomic adds. The adjoint is a gather.
         One launch a body (a colour) for what were three: first the clear of the last box (``clear``: the
-        first body's first launch) and the body's stress (``stress``: its first launch), each its own loop."""
+        first body's first launch) and the body's stress (``stress``: its first launch), each its own loop;
+        inlined in a kernel (``_p2g``, the fused substep), each loop is one of its parallel tasks."""
         self._clear_box(g, clear)
         self._stress(mat, b, start, start + stress * (end - start), src, g, dt)
         margin = ti.static(self.box_margin)
