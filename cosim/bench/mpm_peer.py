@@ -39,8 +39,9 @@ def peer_interpreter(spec: str) -> Interpreter:
     root = Path(folder).expanduser().resolve()
     if not (root / module).exists():
         raise InputError(f"--peer {spec}: no {module} under {root}; clone {url} there")
-    path = os.pathsep.join([str(root), str(current_interpreter().root)])
-    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"} | {"PYTHONPATH": path}
+    # the peer's checkout, then this cosim (its measurement helpers), then what this process was given
+    path = os.pathsep.join([str(root), str(current_interpreter().root), *filter(None, [os.environ.get("PYTHONPATH")])])
+    env = dict(os.environ, PYTHONPATH=path)
     return Interpreter(sys.executable, root, env, label=name, measure=MEASURE_SOFTMAC, package=name)
 
 

@@ -14,7 +14,10 @@ def scenes_dir() -> Path:
     """The folder of the shipped scene files (``*.yaml``) and their assets."""
     from importlib import resources
 
-    return Path(str(resources.files("cosim.scenes")))
+    try:
+        return Path(str(resources.files("cosim.scenes")))
+    except ModuleNotFoundError:  # a checkout on PYTHONPATH, not installed: the repository's scenes/
+        return Path(__file__).resolve().parents[2] / "scenes"
 
 
 PYBULLET_DATA = "pybullet_data:"  # prefix of paths inside the optional pybullet wheel's data folder
