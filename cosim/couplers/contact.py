@@ -59,28 +59,44 @@ class ParticlePenalty:
         self.output = field_pool.vector(self, engine.dim, float, shape=engine.affine.shape, needs_grad=grad)
         engine.attach_particle_hook(self)
 
+    # ``_apply``'s loop is written in it (Taichi differentiates it and refuses a loop inlined from a
+    # ``ti.func``) and again in ``forward_pass``, around the same particle function.
     @ti.kernel
     def _apply(self, src: ti.i32, g: ti.i32, s: ti.i32, dt: float):
         e = self.engine
         ti.loop_config(serialize=e.serial_particle_loops)
         for p in range(e.count[None]):
-            x, v = e.x[src, p], e.v[src, p]
-            m = e.mass_of(p)
-            dp_total = ti.Vector.zero(float, e.dim)
-            for source in ti.static(self.sources):
-                for b in ti.static(range(source.n)):
-                    d, n = source.distance_normal(s, b, x, p)
-                    gap = d - surface_offset(e, ti.static(source_offset(source, self.offset)), p)
-                    if gap < 0:
-                        jn = -self.accel_per_depth * m * gap * dt  # normal impulse, along +n
-                        rel = v - source.contact_velocity(s, b, x, p)
-                        vt = rel - rel.dot(n) * n
-                        vt_norm = ti.sqrt(vt.norm_sqr() + 1e-20)
-                        jt = ti.min(self.friction * jn, m * vt_norm)  # friction impulse, against vt
-                        dp = jn * n - jt * vt / vt_norm
-                        source.add_reaction(s, b, x, dp, p)
-                        dp_total += dp
-            self.output[g, p] = dp_total
+            self._apply_particle(src, g, s, dt, p)
+
+    @ti.func
+    def forward_pass(self, src, g, s, dt):
+        """``apply``'s loop, inlined in the engine's one-launch substep (``MPMKernels._substep_fused``)."""
+        e = self.engine
+        ti.loop_config(serialize=e.serial_particle_loops)
+        for p in range(e.count[None]):
+            self._apply_particle(src, g, s, dt, p)
+
+    @ti.func
+    def _apply_particle(self, src, g, s, dt, p):
+        """Particle p's penalty and friction momentum [N s] into ``output``, its reaction on the bodies."""
+        e = self.engine
+        x, v = e.x[src, p], e.v[src, p]
+        m = e.mass_of(p)
+        dp_total = ti.Vector.zero(float, e.dim)
+        for source in ti.static(self.sources):
+            for b in ti.static(range(source.n)):
+                d, n = source.distance_normal(s, b, x, p)
+                gap = d - surface_offset(e, ti.static(source_offset(source, self.offset)), p)
+                if gap < 0:
+                    jn = -self.accel_per_depth * m * gap * dt  # normal impulse, along +n
+                    rel = v - source.contact_velocity(s, b, x, p)
+                    vt = rel - rel.dot(n) * n
+                    vt_norm = ti.sqrt(vt.norm_sqr() + 1e-20)
+                    jt = ti.min(self.friction * jn, m * vt_norm)  # friction impulse, against vt
+                    dp = jn * n - jt * vt / vt_norm
+                    source.add_reaction(s, b, x, dp, p)
+                    dp_total += dp
+        self.output[g, p] = dp_total
 
     def apply(self, src: int, g: int, s: int, dt: float) -> None:
         self._apply(src, g, s, dt)
@@ -223,6 +239,11 @@ class ForecastContact:
         """Look-ahead G2P v_init = W^T v_hat, BC_p (``_constrain``), and the scatter of the
         constrained particles' W M_p r. One kernel (atomic adds only for constrained particles):
         a kernel launch costs as much as the work here."""
+        self.forward_pass(src, g, s, dt)
+
+    @ti.func
+    def forward_pass(self, src, g, s, dt):
+        """``_forecast``'s loop (inlined in it, and in the engine's one-launch substep)."""
         e = self.engine
         ti.loop_config(serialize=e.serial_particle_loops)
         for p in range(e.count[None]):
@@ -371,6 +392,12 @@ class ForecastContact:
                 before += self.residual[g, p].norm_sqr()
                 after += (v - target).norm_sqr()
         return ti.Vector([before, after])
+
+    @property
+    def fuses(self) -> bool:
+        """Whether the engine may run ``forward_pass`` in its one-launch substep: not while the bench's
+        objective is tracked (a sum read back every substep)."""
+        return not self.track_objective
 
     def apply(self, src: int, g: int, s: int, dt: float) -> None:
         self._forecast(src, g, s, dt)

@@ -365,22 +365,28 @@ class MPMKernels(StencilFunctions, SlotIO, ParticleBins, P2GKernels):
     def _fused(self) -> bool:
         """Whether a substep is one launch (``_substep_fused``): allowed (``fuse_substeps``), forward-only, a
         scatter of one pass (not the coloured one's pass per colour), no boundary source preparing substeps,
-        no particle hooks, and every grid hook with a ``forward_pass``."""
+        and every particle and grid hook with a ``forward_pass`` that it lets run fused (``fuses``, default
+        true: the forecast model's bench diagnostic reads a sum back every substep)."""
         return (
             self.fuse_substeps
             and not self.cfg.requires_grad
             and self.scatter != "coloured"
             and not self.substep_preparers
-            and not self.particle_hooks
-            and all(hasattr(hook, "forward_pass") for hook in self.grid_hooks)
+            and all(
+                hasattr(hook, "forward_pass") and getattr(hook, "fuses", True)
+                for hook in self.particle_hooks + self.grid_hooks
+            )
         )
 
     @ti.kernel
     def _substep_fused(self, src: ti.i32, dst: ti.i32, s: ti.i32, dt: float, control_share: float, floor: float):
-        """A forward-only substep in one launch: each body's P2G, the grid update, each grid hook's
-        ``forward_pass`` and each body's G2P, the passes' loops run in this order as the kernel's parallel
-        tasks, on the same functions as the substep's separate kernels (the same numbers bit for bit).
+        """A forward-only substep in one launch: each particle hook's ``forward_pass``, each body's P2G, the
+        grid update, each grid hook's ``forward_pass`` and each body's G2P, the passes' loops run in this
+        order as the kernel's parallel tasks, on the same functions as the substep's separate kernels
+        (the same numbers; to round-off under fast math, which may contract a larger kernel differently).
         A launch costs tens of microseconds of Python and Taichi, as much as a small scene's loops."""
+        for hook in ti.static(self.particle_hooks):
+            hook.forward_pass(src, 0, s, dt)
         clear = ti.static(not self._fused_clear())  # else the grid update cleared the grid
         for b in ti.static(range(len(self.bodies))):
             lo, hi = self.body_range[b][0], self.body_range[b][1]
