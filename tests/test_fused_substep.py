@@ -1,4 +1,4 @@
-"""A forward-only substep is one kernel launch (``MPMKernels._substep_fused``): its passes are the
+"""A substep is one kernel launch (``MPMKernels._substep_fused``): its passes are the
 separate kernels' functions in the same order, so it gives their numbers (to round-off: fast math lets
 the compiler contract differently in a larger kernel), with a grid contact hook and its reactions too."""
 

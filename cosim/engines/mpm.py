@@ -105,7 +105,7 @@ class MPMEngine(MPMAdjointKernels):
         ``zero_grad()`` (its own adjoints only). Its grid passes loop over grid copy g's box
         [``active_lo[g]``, ``active_hi[g]``), the nodes the particles reach (``_clear_box``); a hook
         that reads or writes nodes up to k beyond them sets ``hook.box_margin = k``. A hook with a
-        ``@ti.func forward_pass(src, g, s, dt)`` doing what ``apply`` does lets a forward-only substep run
+        ``@ti.func forward_pass(src, g, s, dt)`` doing what ``apply`` does lets a substep run
         as one launch (``MPMKernels._substep_fused``); without one the substep's phases launch apart.
         """
         self._check_unspecialised("grid hooks")

@@ -114,7 +114,7 @@ class MPMKernels(StencilFunctions, SlotIO, ParticleBins, P2GKernels):
         self.p_liquid.from_numpy(np.array([b.material == "liquid" for b in bodies], dtype=np.int32))
         self.count[None] = self.n_particles
         self.body_range.from_numpy(np.array(self.ranges, dtype=np.int32))
-        self.fuse_substeps = True  # a forward-only substep in one launch where it can be (``_fused``)
+        self.fuse_substeps = True  # a substep in one launch where it can be (``_fused``)
         self.mass = np.concatenate([np.full(b.n, b.particle_mass) for b in bodies])
         self.body_id.from_numpy(
             self.padded(np.concatenate([np.full(b.n, i, dtype=np.int32) for i, b in enumerate(bodies)]))
@@ -356,20 +356,19 @@ class MPMKernels(StencilFunctions, SlotIO, ParticleBins, P2GKernels):
 
     def _substep(self, src: int, dst: int, dt: float, control_share: float, s: int) -> None:
         if self._fused():
-            self._substep_fused(src, dst, s, dt, control_share, self._mass_floor())
+            self._substep_fused(src, dst, self._grid_index(src), s, dt, control_share, self._mass_floor())
             return
         self.pre_coupling(src, s, dt, control_share)
         self.coupling(src, s, dt)
         self.post_coupling(src, dst, dt, s)
 
     def _fused(self) -> bool:
-        """Whether a substep is one launch (``_substep_fused``): allowed (``fuse_substeps``), forward-only, a
-        scatter of one pass (not the coloured one's pass per colour), no boundary source preparing substeps,
+        """Whether a substep is one launch (``_substep_fused``; forward, recorded or recomputed: the adjoints
+        read what it wrote, as they read the separate kernels'): allowed (``fuse_substeps``), a scatter of one pass (not the coloured one's pass per colour), no boundary source preparing substeps,
         and every particle and grid hook with a ``forward_pass`` that it lets run fused (``fuses``, default
         true: the forecast model's bench diagnostic reads a sum back every substep)."""
         return (
             self.fuse_substeps
-            and not self.cfg.requires_grad
             and self.scatter != "coloured"
             and not self.substep_preparers
             and all(
@@ -379,25 +378,27 @@ class MPMKernels(StencilFunctions, SlotIO, ParticleBins, P2GKernels):
         )
 
     @ti.kernel
-    def _substep_fused(self, src: ti.i32, dst: ti.i32, s: ti.i32, dt: float, control_share: float, floor: float):
-        """A forward-only substep in one launch: each particle hook's ``forward_pass``, each body's P2G, the
+    def _substep_fused(
+        self, src: ti.i32, dst: ti.i32, g: ti.i32, s: ti.i32, dt: float, control_share: float, floor: float
+    ):
+        """A substep in one launch (grid copy g): each particle hook's ``forward_pass``, each body's P2G, the
         grid update, each grid hook's ``forward_pass`` and each body's G2P, the passes' loops run in this
         order as the kernel's parallel tasks, on the same functions as the substep's separate kernels
         (the same numbers; to round-off under fast math, which may contract a larger kernel differently).
         A launch costs tens of microseconds of Python and Taichi, as much as a small scene's loops."""
         for hook in ti.static(self.particle_hooks):
-            hook.forward_pass(src, 0, s, dt)
+            hook.forward_pass(src, g, s, dt)
         clear = ti.static(not self._fused_clear())  # else the grid update cleared the grid
         for b in ti.static(range(len(self.bodies))):
             lo, hi = self.body_range[b][0], self.body_range[b][1]
-            self._p2g_pass(self.scatter, self.materials[b], b, lo, hi, src, 0, dt, control_share,
+            self._p2g_pass(self.scatter, self.materials[b], b, lo, hi, src, g, dt, control_share,
                            b == 0, 0, clear and b == 0, 1)  # fmt: skip
-        self._grid_update_pass(0, dt, floor)
+        self._grid_update_pass(g, dt, floor)
         for hook in ti.static(self.grid_hooks):
-            hook.forward_pass(src, 0, s, dt)
+            hook.forward_pass(src, g, s, dt)
         for b in ti.static(range(len(self.bodies))):
             lo, hi = self.body_range[b][0], self.body_range[b][1]
-            self._g2p_pass(self.materials[b], b, lo, hi, src, dst, 0, self._grid_out, s, dt)
+            self._g2p_pass(self.materials[b], b, lo, hi, src, dst, g, self._grid_out, s, dt)
 
 
 def _check_gradient_build(requires_grad: bool) -> None:
