@@ -18,7 +18,7 @@ from cosim.engines.mpm_checkpoints import CheckpointStore, DeviceState
 from cosim.errors import SimulationError
 from cosim.scene.build import build_system
 
-STEPS = 5
+STEPS = 4
 
 
 def objective(where: str = "auto", checkpoint_every: int = 1) -> Objective:
