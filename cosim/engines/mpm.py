@@ -173,8 +173,9 @@ class MPMEngine(MPMAdjointKernels):
             return 0.0
         return self._energy_meter.control_work(0 if self.cfg.requires_grad else self._previous_start)
 
-    def set_state(self, state: dict[str, np.ndarray]) -> None:
-        """Restore a state from ``state()`` (or a step's); the next step starts from it bit for bit."""
+    def set_state(self, state: Mapping) -> None:
+        """Restore a state from ``state()`` or a step's (host arrays, a ``SlotState``, a ``DeviceState``);
+        the next step starts from it bit for bit."""
         self._forget(0)  # a view of slot 0 (``state`` itself, maybe) reads it first
         self.checkpoints.write(state, self._state_fields(), 0)
         self._slot = 0
