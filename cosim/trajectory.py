@@ -123,7 +123,6 @@ def step_reactions(sim) -> np.ndarray:
     (``cosim.couplers.mpm_rigid.average_wrench``, as for DART); DART links: the wrench that step applied
     to the link (``cosim.couplers.mpm_rigid``'s average, plus a cloth pressing on it)."""
     from cosim.couplers.mpm_rigid import average_wrench, lift_reactions
-    from cosim.engines.kinematic import kinematic_states
 
     rigid, last = sim.rigid, sim.last.exchanges[-1]  # the last exchange of the macro step
     rows = []
@@ -131,7 +130,7 @@ def step_reactions(sim) -> np.ndarray:
         source = next(c.source for c in sim.couplers if c.engine == rigid.kinematic.name)
         reactions = last.outputs["reactions"][source]
         K, dt = last.substeps, last.dt
-        pos_d = kinematic_states(rigid.kinematic.motions, last.time, dt, K)["pos"]
+        pos_d = last.mpm.boundaries[source]["pos"][:K]  # the poses the step's substeps used
         pos_k = np.zeros((*pos_d.shape[:-1], 3))
         pos_k[..., : rigid.dim] = pos_d
         J, L = lift_reactions(reactions["impulse"], reactions["angular_impulse"], rigid.dim)

@@ -121,42 +121,43 @@ class RigidBoundaries:
     # ------------------------------------------------------------------ the MPM engine's side
     def write(self, states: dict[str, np.ndarray]) -> None:
         """Body states of substeps 0..K-1 (BoundaryStates, ``cosim.engines.contract``); clears their reactions.
-        Only the K slots are written (the fields hold max_substeps)."""
-        arrays = [np.ascontiguousarray(states[k], dtype=self.real) for k in BOUNDARY_KEYS]
-        self._substeps = len(arrays[0])
-        self._write_states(*arrays, self._substeps)
+        Only the K slots are written (the fields hold max_substeps). One host array (``_pack``): on a GPU
+        each array a kernel takes from the host is a copy and a wait of its own."""
+        self._substeps = len(states["pos"])
+        self._write_states(self._pack(states), self._substeps)
         if self.added is not None:
             self.added.write(states, self._substeps)
 
+    def _pack(self, states: dict[str, np.ndarray]) -> np.ndarray:
+        """(K, n, d + d^2 + d + 1|3): pos, rot (row-major), vel and omega of each substep and body, side by side."""
+        K = len(states["pos"])
+        parts = [np.reshape(states[k], (K, self.n, -1)) for k in BOUNDARY_KEYS]
+        return np.ascontiguousarray(np.concatenate(parts, axis=-1), dtype=self.real)
+
     @ti.kernel
-    def _write_states(
-        self,
-        pos: ti.types.ndarray(),
-        rot: ti.types.ndarray(),
-        vel: ti.types.ndarray(),
-        omega: ti.types.ndarray(),
-        K: ti.i32,
-    ):
+    def _write_states(self, packed: ti.types.ndarray(), K: ti.i32):
+        d = ti.static(self.dim)
         ti.loop_config(serialize=True)  # substeps x bodies: far less work than a thread-pool dispatch (arch)
         for s, b in ti.ndrange(K, self.n):
-            for i in ti.static(range(self.dim)):
-                self.pos[s, b][i] = pos[s, b, i]
-                self.vel[s, b][i] = vel[s, b, i]
+            for i in ti.static(range(d)):
+                self.pos[s, b][i] = packed[s, b, i]
+                self.vel[s, b][i] = packed[s, b, d + d * d + i]
                 self.impulse[s, b][i] = 0.0
-                for j in ti.static(range(self.dim)):
-                    self.rot[s, b][i, j] = rot[s, b, i, j]
+                for j in ti.static(range(d)):
+                    self.rot[s, b][i, j] = packed[s, b, d + d * i + j]
             for i in ti.static(range(self.wdim)):
-                self.omega[s, b][i] = omega[s, b, i]
+                self.omega[s, b][i] = packed[s, b, 2 * d + d * d + i]
                 self.angular_impulse[s, b][i] = 0.0
 
     @ti.kernel
-    def _read_reactions(self, impulse: ti.types.ndarray(), angular: ti.types.ndarray(), K: ti.i32):
+    def _read_reactions(self, packed: ti.types.ndarray(), K: ti.i32):
+        """Into ``packed`` (K, n, d + 1|3): each substep's and body's impulse, then its angular impulse."""
         ti.loop_config(serialize=True)  # as in _write_states
         for s, b in ti.ndrange(K, self.n):
             for i in ti.static(range(self.dim)):
-                impulse[s, b, i] = self.impulse[s, b][i]
+                packed[s, b, i] = self.impulse[s, b][i]
             for i in ti.static(range(self.wdim)):
-                angular[s, b, i] = self.angular_impulse[s, b][i]
+                packed[s, b, self.dim + i] = self.angular_impulse[s, b][i]
 
     @staticmethod
     def work(states: dict[str, np.ndarray], reactions: dict[str, np.ndarray]) -> np.ndarray:
@@ -171,10 +172,10 @@ class RigidBoundaries:
     def reactions(self, K: int) -> dict[str, np.ndarray]:
         """Reactions of substeps 0..K-1: impulse (K, n, d) [N s], angular_impulse (K, n, 1|3) about pos;
         with an engagement, "mass" (n, k, k) (the class docstring)."""
-        impulse = np.zeros((K, self.n, self.dim), dtype=self.real)
-        angular = np.zeros((K, self.n, self.wdim), dtype=self.real)
-        self._read_reactions(impulse, angular, K)
-        out = {"impulse": impulse.astype(np.float64), "angular_impulse": angular.astype(np.float64)}
+        packed = np.zeros((K, self.n, self.dim + self.wdim), dtype=self.real)
+        self._read_reactions(packed, K)
+        packed = packed.astype(np.float64)
+        out = {"impulse": packed[..., : self.dim], "angular_impulse": packed[..., self.dim :]}
         if self.added is not None and self.engagement is not None:
             out["mass"] = self.added.mass(self.engagement.engine._slot, K)
         return out

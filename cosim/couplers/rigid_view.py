@@ -39,8 +39,9 @@ class RigidBodies:
         if self.kinematic is not None:
             t = self.kinematic.time
             for motion in self.kinematic.motions:
-                ends = [motion.twist(t), motion.twist(t + frame_dt)]
-                twists.append(max(ends, key=lambda vw: np.linalg.norm(vw[0]) + np.linalg.norm(vw[1])))
+                _, _, v, w = motion.states([t, t + frame_dt])
+                end = np.argmax(np.linalg.norm(v, axis=1) + np.linalg.norm(w, axis=1))
+                twists.append((v[end], w[end]))
         if self.coupler is not None:
             b = self.coupler.current_bodies()
             twists += list(zip(b.v, b.w))

@@ -53,11 +53,13 @@ class TunnelWatch:
     def step(self, poses0: list, poses1: list) -> np.ndarray:
         """(soft bodies, rigid bodies) counts of the particles that went through each rigid body over the
         step since ``begin``, the bodies at ``poses0`` [(position, rotation)] then and ``poses1`` now."""
-        (p0, R0), (p1, R1) = (
-            [np.asarray(a, dtype=self.engine.real) for a in zip(*poses)] for poses in (poses0, poses1)
-        )
+        d = self.engine.dim
+        poses = np.zeros((2, self.n, d + d * d), dtype=self.engine.real)  # one host array (``_watch``)
+        for t, at in enumerate((poses0, poses1)):
+            for b, (position, rotation) in enumerate(at):
+                poses[t, b, :d], poses[t, b, d:] = position, np.reshape(rotation, -1)
         out = np.zeros(self.crossed.shape, dtype=np.int32)
-        self._watch(self.engine.slot, p0, R0, p1, R1, out)
+        self._watch(self.engine.slot, poses, out)
         self._kept = self.engine.state_version  # x0 now holds the positions the next step starts from
         return out
 
@@ -72,12 +74,11 @@ class TunnelWatch:
     def _watch(
         self,
         slot: ti.i32,
-        p0: ti.types.ndarray(),
-        R0: ti.types.ndarray(),
-        p1: ti.types.ndarray(),
-        R1: ti.types.ndarray(),
+        poses: ti.types.ndarray(),
         out: ti.types.ndarray(),
     ):
+        """Count the crossings into ``crossed`` and ``out``; ``poses`` (2, bodies, d + d^2): each body's
+        position and rotation (row-major) at the step's start (0) and end (1)."""
         e = self.engine
         ti.loop_config(serialize=True)
         for i, j in ti.ndrange(*self.crossed.shape):
@@ -85,8 +86,8 @@ class TunnelWatch:
         ti.loop_config(serialize=e.serial_particle_loops)
         for p in range(e.count[None]):
             for b in ti.static(range(self.n)):
-                a = self._to_body(self.x0[p], p0, R0, b)
-                z = self._to_body(e.x[slot, p], p1, R1, b)
+                a = self._to_body(self.x0[p], poses, 0, b)
+                z = self._to_body(e.x[slot, p], poses, 1, b)
                 da, na = self.sdfs[b].distance_normal(a)
                 dz, nz = self.sdfs[b].distance_normal(z)
                 last = self.last_normal[p, b]
@@ -111,10 +112,11 @@ class TunnelWatch:
             out[i, j] = self.crossed[i, j]
 
     @ti.func
-    def _to_body(self, x, pos: ti.template(), rot: ti.template(), b: ti.template()):
-        """World point x in the frame of body b at (pos[b], rot[b]): rot^T (x - pos)."""
-        out = ti.Vector.zero(float, self.engine.dim)
-        for i in ti.static(range(self.engine.dim)):
-            for j in ti.static(range(self.engine.dim)):
-                out[i] += rot[b, j, i] * (x[j] - pos[b, j])
+    def _to_body(self, x, poses: ti.template(), t: ti.template(), b: ti.template()):
+        """World point x in the frame of body b at pose t of ``poses`` (position p, rotation R): R^T (x - p)."""
+        d = ti.static(self.engine.dim)
+        out = ti.Vector.zero(float, d)
+        for i in ti.static(range(d)):
+            for j in ti.static(range(d)):
+                out[i] += poses[t, b, d + d * j + i] * (x[j] - poses[t, b, j])
         return out

@@ -33,6 +33,26 @@ import numpy as np
 from cosim.engines import so3
 
 
+def _turns(phi: np.ndarray) -> np.ndarray:
+    """Rotations by rotation vectors phi (T, 1) in 2D (angles), (T, 3) in 3D: (T, d, d)."""
+    return so3.rotation_2d(phi[:, 0]) if phi.shape[-1] == 1 else so3.exp(phi)
+
+
+@dataclass(frozen=True)
+class _SegmentTable:
+    """A piecewise motion's segments as arrays, row i segment i, the last row the rest after them: start
+    time ``begins`` [s] (``ends``: the segments' end times), ``velocity`` [m/s], ``spin`` [rad/s] (1 or 3
+    components), and the pose at the start as a displacement ``start_p`` [m] and rotation ``start_R`` from
+    the cycle's start pose (p, R): (p + start_p, start_R R)."""
+
+    begins: np.ndarray
+    ends: np.ndarray
+    velocity: np.ndarray
+    spin: np.ndarray
+    start_p: np.ndarray
+    start_R: np.ndarray
+
+
 def constant(p0, R0, velocity, angular_velocity) -> Motion:
     """A body moving with a constant twist forever."""
     return Motion(
@@ -82,39 +102,7 @@ class Motion:
     def dim(self) -> int:
         return len(self.p0)
 
-    def _zero_w(self):
-        return 0.0 if self.dim == 2 else np.zeros(3)
-
     # -------------------------------------------------------------- segments
-    def _segment_index(self, t: float) -> tuple[int, float, int]:
-        """Index of the segment holding t (``len(segments)``: after the last, at rest), the time into it
-        and the whole cycles of ``repeat`` before it."""
-        period, cycles = self._cycle[0], 0
-        if self.repeat and 0 < period < math.inf:
-            cycles = math.floor(t / period)
-            t -= cycles * period
-        for i, seg in enumerate(self.segments):
-            if t < seg.duration:
-                return i, t, cycles
-            t -= seg.duration
-        return len(self.segments), t, cycles
-
-    def _segment_at(self, t: float) -> tuple[int, float, np.ndarray, np.ndarray]:
-        """Index of the segment holding t, time into it, and the pose at its start.
-
-        Index ``len(segments)`` means after the last segment (at rest). Velocities
-        are world-frame, so a whole cycle of ``repeat`` shifts by the same
-        translation and left-multiplies by the same rotation every time.
-        """
-        i, tau, cycles = self._segment_index(t)
-        _, shift, turn = self._cycle
-        p = self.p0.astype(np.float64) + cycles * shift
-        R = self.R0.astype(np.float64)
-        if cycles and turn is not None:
-            R = np.linalg.matrix_power(turn, cycles) @ R
-        start_p, start_R = self._starts[i]
-        return i, tau, p + start_p, start_R @ R
-
     @functools.cached_property
     def _cycle(self) -> tuple[float, np.ndarray, np.ndarray | None]:
         """The segments' total duration [s], and the translation and rotation (None: none) one whole
@@ -126,15 +114,29 @@ class Motion:
         return period, shift, None if no_turn else turn
 
     @functools.cached_property
-    def _starts(self) -> list[tuple[np.ndarray, np.ndarray]]:
-        """Each segment's start, then the last one's end (where the body rests after it), as a displacement
-        and rotation from the cycle's start: the pose there is (p + dp, dR R) for the cycle's start pose (p, R)."""
-        dp, dR, out = np.zeros(self.dim), np.eye(self.dim), []
+    def _table(self) -> _SegmentTable:
+        """Each segment's start time, twist and start pose (from the cycle's start), then the last one's end
+        (at rest there)."""
+        dp, dR, starts = np.zeros(self.dim), np.eye(self.dim), []
         for seg in self.segments:
-            out.append((dp, dR))
+            starts.append((dp, dR))
             if seg.duration < math.inf:
                 dp, dR = self._advance_one(dp, dR, seg, seg.duration)
-        return [*out, (dp, dR)]
+        starts.append((dp, dR))
+        ends = np.cumsum([seg.duration for seg in self.segments])
+        spins = [self._spin(seg.angular_velocity) for seg in self.segments] + [self._spin(0.0)]
+        return _SegmentTable(
+            begins=np.concatenate([[0.0], ends]),
+            ends=ends,
+            velocity=np.array([np.asarray(seg.velocity, float) for seg in self.segments] + [np.zeros(self.dim)]),
+            spin=np.array(spins),
+            start_p=np.array([p for p, _ in starts]),
+            start_R=np.array([R for _, R in starts]),
+        )
+
+    def _spin(self, w) -> np.ndarray:
+        """An angular velocity as a (1,) array in 2D, (3,) in 3D (where a scalar 0 stands for no spin)."""
+        return np.array([float(w)]) if self.dim == 2 else np.broadcast_to(np.asarray(w, float), (3,)).copy()
 
     @staticmethod
     def _advance_one(p, R, seg: Segment, dt: float):
@@ -148,35 +150,60 @@ class Motion:
             duration -= step
         return p, R
 
+    def _segment_states(self, t: np.ndarray):
+        """``states`` of a constant or piecewise motion: find each time's segment (after whole cycles of
+        ``repeat``), start from its start pose and move with its twist for the time spent in it."""
+        period, shift, turn = self._cycle
+        table = self._table
+        whole = self.repeat and 0 < period < math.inf
+        cycles = np.floor(t / period) if whole else None
+        if whole:
+            t = t - cycles * period
+        i = np.searchsorted(table.ends, t, side="right")  # the segment holding t (len(segments): after the last)
+        velocity, spin = table.velocity[i], table.spin[i]
+        p = self.p0 + table.start_p[i] + velocity * (t - table.begins[i])[:, None]
+        R = self.R0
+        if whole:
+            p += cycles[:, None] * shift
+            if turn is not None:  # every whole cycle turns the start pose once more
+                R = np.array([np.linalg.matrix_power(turn, int(c)) for c in cycles]) @ R
+        R = table.start_R[i] @ R
+        if spin.any():  # a turn within the segment
+            R = _turns(spin * (t - table.begins[i])[:, None]) @ R
+        return p, R, velocity, spin
+
     # -------------------------------------------------------------- public
-    def pose(self, t: float) -> tuple[np.ndarray, np.ndarray]:
-        """Position (d,) and rotation (d, d) of the body frame at time t."""
+    def states(self, times) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The pose and twist at each of ``times`` (T,) [s], in one pass: position (T, d), rotation (T, d, d),
+        velocity (T, d) of the body origin and angular velocity (T, 1) in 2D, (T, 3) in 3D."""
+        t = np.asarray(times, dtype=np.float64).reshape(-1)
+        n, d = len(t), self.dim
         if self.kind in ("constant", "piecewise"):
-            i, tau, p, R = self._segment_at(t)
-            if i < len(self.segments):
-                return self._advance_one(p, R, self.segments[i], tau)
-            return p, R
+            return self._segment_states(t)
+        R = np.broadcast_to(self.R0.astype(np.float64), (n, d, d)).copy()
+        spin = np.zeros((n, 1 if d == 2 else 3))
         if self.kind == "shake":  # starts at p0 whatever the phase
             w = 2 * math.pi * self.frequency
-            return self.p0 + self.amplitude * (math.sin(w * t + self.phase) - math.sin(self.phase)), self.R0.copy()
-        # waypoints
-        return np.array([np.interp(t, self.times, self.positions[:, k]) for k in range(self.dim)]), self.R0.copy()
+            angle = (w * t + self.phase)[:, None]
+            p = self.p0 + self.amplitude * (np.sin(angle) - math.sin(self.phase))
+            return p, R, self.amplitude * w * np.cos(angle), spin
+        # waypoints: piecewise linear, at rest after the last
+        p = np.stack([np.interp(t, self.times, self.positions[:, k]) for k in range(d)], axis=-1)
+        k = np.searchsorted(self.times, t, side="right") - 1
+        moving = k < len(self.times) - 1
+        k = np.minimum(k, len(self.times) - 2)
+        v = (self.positions[k + 1] - self.positions[k]) / (self.times[k + 1] - self.times[k])[:, None]
+        return p, R, np.where(moving[:, None], v, 0.0), spin
+
+    def pose(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """Position (d,) and rotation (d, d) of the body frame at time t."""
+        p, R, _, _ = self.states([t])
+        return p[0], R[0]
 
     def twist(self, t: float) -> tuple[np.ndarray, np.ndarray | float]:
-        """Linear velocity (d,) of the body origin and angular velocity (world frame) at time t."""
-        if self.kind in ("constant", "piecewise"):
-            i, _, _ = self._segment_index(t)
-            if i < len(self.segments):
-                seg = self.segments[i]
-                return np.asarray(seg.velocity, dtype=np.float64), seg.angular_velocity
-            return np.zeros(self.dim), self._zero_w()
-        if self.kind == "shake":
-            w = 2 * math.pi * self.frequency
-            return self.amplitude * w * math.cos(w * t + self.phase), self._zero_w()
-        k = int(np.searchsorted(self.times, t, side="right")) - 1
-        if k >= len(self.times) - 1:
-            return np.zeros(self.dim), self._zero_w()
-        return (self.positions[k + 1] - self.positions[k]) / (self.times[k + 1] - self.times[k]), self._zero_w()
+        """Linear velocity (d,) of the body origin and angular velocity (world frame) at time t (a float in 2D)."""
+        _, _, v, w = self.states([t])
+        return v[0], float(w[0, 0]) if self.dim == 2 else w[0]
 
     def point_velocity(self, t: float, x: np.ndarray) -> np.ndarray:
         """Velocity [m/s] of the body's material point at world position(s) x: v + w x (x - p)."""
@@ -203,11 +230,9 @@ def kinematic_states(motions: list[Motion], t0: float, dt: float, K: int) -> dic
         "vel": np.zeros((K, m, dim)),
         "omega": np.zeros((K, m, 1 if dim == 2 else 3)),
     }
-    for s in range(K):
-        for b, motion in enumerate(motions):
-            out["pos"][s, b], out["rot"][s, b] = motion.pose(t0 + s * dt)
-            out["vel"][s, b], w = motion.twist(t0 + s * dt)
-            out["omega"][s, b] = w
+    times = t0 + np.arange(K) * dt
+    for b, motion in enumerate(motions):
+        out["pos"][:, b], out["rot"][:, b], out["vel"][:, b], out["omega"][:, b] = motion.states(times)
     return out
 
 

@@ -15,7 +15,7 @@ import taichi as ti
 
 from cosim.engines.data_oriented import data_oriented
 from cosim.engines.materials import polar_rotation
-from cosim.engines.mpm_watch import body_chunks
+from cosim.engines.mpm_watch import body_chunks, chunk_table
 
 TERMS = ("kinetic", "gravity", "strain", "volume")
 
@@ -27,6 +27,8 @@ class EnergyMeter:
     def __init__(self, engine):
         self.engine = engine
         self.chunks = body_chunks(engine.ranges)
+        self.n_chunks = len(self.chunks)
+        self.chunk_table = chunk_table(self, self.chunks)
 
     @ti.func
     def strain_density(self, b, F):
@@ -42,15 +44,15 @@ class EnergyMeter:
         return psi
 
     @ti.kernel
-    def _chunk_sums(self, slot: ti.i32, chunks: ti.types.ndarray(), out: ti.types.ndarray()):
+    def _chunk_sums(self, slot: ti.i32, out: ti.types.ndarray()):
         """Per chunk c (parallel; serial within a chunk), into ``out[c]``: the ``TERMS`` of its particles."""
         e = self.engine
         ti.loop_config(serialize=e.serial_particle_loops)
-        for c in range(chunks.shape[0]):
-            b = chunks[c, 2]
+        for c in range(self.n_chunks):
+            b = self.chunk_table[c, 2]
             m, vol = e.p_mass[b], e.p_vol[b]
             sums = ti.Vector.zero(ti.f64, 4)
-            for p in range(chunks[c, 0], chunks[c, 1]):
+            for p in range(self.chunk_table[c, 0], self.chunk_table[c, 1]):
                 F = e.F[slot, p]
                 terms = ti.Vector(
                     [
@@ -65,14 +67,14 @@ class EnergyMeter:
                 out[c, k] = sums[k]
 
     @ti.kernel
-    def _chunk_control_work(self, slot: ti.i32, chunks: ti.types.ndarray(), out: ti.types.ndarray()):
+    def _chunk_control_work(self, slot: ti.i32, out: ti.types.ndarray()):
         """Per chunk c, into ``out[c]``: sum I . v + |I|^2 / 2m of its particles, I the control impulse."""
         e = self.engine
         ti.loop_config(serialize=e.serial_particle_loops)
-        for c in range(chunks.shape[0]):
-            m = e.p_mass[chunks[c, 2]]
+        for c in range(self.n_chunks):
+            m = e.p_mass[self.chunk_table[c, 2]]
             work = ti.cast(0.0, ti.f64)
-            for p in range(chunks[c, 0], chunks[c, 1]):
+            for p in range(self.chunk_table[c, 0], self.chunk_table[c, 1]):
                 impulse = e.control[p]
                 work += ti.cast(impulse.dot(e.v[slot, p]) + impulse.norm_sqr() / (2.0 * m), ti.f64)
             out[c] = work
@@ -81,13 +83,13 @@ class EnergyMeter:
         """[J] Kinetic energy the control impulses (``engine.control``) add to the particles in ``slot``
         (their velocities before the impulses): sum I . v + |I|^2 / 2m."""
         out = np.zeros(len(self.chunks))
-        self._chunk_control_work(slot, self.chunks, out)
+        self._chunk_control_work(slot, out)
         return float(out.sum())
 
     def body_sums(self, slot: int) -> np.ndarray:
         """(bodies, 4) float64: per body the ``TERMS`` of the particles in ``slot``."""
         out = np.zeros((len(self.chunks), len(TERMS)))
-        self._chunk_sums(slot, self.chunks, out)
+        self._chunk_sums(slot, out)
         sums = np.zeros((len(self.engine.bodies), len(TERMS)))
         np.add.at(sums, self.chunks[:, 2], out)
         return sums

@@ -34,6 +34,15 @@ def body_chunks(ranges: list[tuple[int, int]]) -> np.ndarray:
     return np.array(chunks, dtype=np.int32).reshape(-1, 3)
 
 
+def chunk_table(owner, chunks: np.ndarray):
+    """``chunks`` (``body_chunks``) in an i32 field of ``owner`` (at least one row), which the per-chunk
+    kernels read: an array handed to a kernel from the host is, on a GPU, a copy and a wait at every launch."""
+    table = field_pool.scalar(owner, ti.i32, shape=(max(len(chunks), 1), 3))
+    if len(chunks):
+        table.from_numpy(chunks)
+    return table
+
+
 @dataclass
 class BodyHealth:
     """One body's particles at the end of a step."""
@@ -71,6 +80,8 @@ class ParticleWatch:
         self.low = engine.dx  # [m] inside the grid: at least a cell from each face
         self.high = ti.Vector([c * engine.dx - engine.dx for c in engine.cfg.cells])
         self.chunks = body_chunks(engine.ranges)
+        self.n_chunks = len(self.chunks)
+        self.chunk_table = chunk_table(self, self.chunks)
 
     @ti.func
     def flag(self, p, s, x, F, new_x, new_F):
@@ -79,15 +90,15 @@ class ParticleWatch:
             ti.atomic_min(self.first[self.engine.body_id[p]], s - 1 if non_finite(x.sum() + F.sum()) else s)
 
     @ti.kernel
-    def _survey(self, slot: ti.i32, chunks: ti.types.ndarray(), out: ti.types.ndarray(), first: ti.types.ndarray()):
+    def _survey(self, slot: ti.i32, out: ti.types.ndarray()):
         """Per chunk c (parallel), into ``out[c]``: max |v|, particles with a non-finite x, v, C, F, particles
-        outside; ``first`` gets the first bad substeps, which are reset."""
+        outside and its body's first bad substep; then the first bad substeps are reset."""
         e = self.engine
         ti.loop_config(serialize=e.serial_particle_loops)
-        for c in range(chunks.shape[0]):
+        for c in range(self.n_chunks):
             peak, outside = 0.0, 0
             bad = ti.Vector.zero(ti.i32, 4)
-            for p in range(chunks[c, 0], chunks[c, 1]):
+            for p in range(self.chunk_table[c, 0], self.chunk_table[c, 1]):
                 x, v = e.x[slot, p], e.v[slot, p]
                 peak = ti.max(peak, ti.abs(v).max())
                 sums = ti.Vector([x.sum(), v.sum(), e.C[slot, p].sum(), e.F[slot, p].sum()])
@@ -101,21 +112,22 @@ class ParticleWatch:
             for k in ti.static(range(4)):
                 out[c, 1 + k] = bad[k]
             out[c, 5] = outside
+            out[c, 6] = self.first[self.chunk_table[c, 2]]
         ti.loop_config(serialize=True)  # a few bodies: a thread-pool dispatch would cost more (arch)
         for b in range(self.n_bodies):
-            first[b] = self.first[b]
             self.first[b] = NONE
 
     def survey(self, slot: int) -> dict[str, BodyHealth]:
         """{body name: its ``BodyHealth``} for the particles in ``slot``, with the first bad substep of the
         substeps since the last survey; resets that."""
-        out = np.zeros((len(self.chunks), 6))
-        first = np.zeros(self.n_bodies, dtype=np.int32)
-        self._survey(slot, self.chunks, out, first)
+        out = np.zeros((len(self.chunks), 7))
+        self._survey(slot, out)
+        first = np.full(self.n_bodies, NONE)
+        first[self.chunks[:, 2]] = out[:, 6]  # each of a body's chunks holds its first bad substep
         peak = np.zeros(self.n_bodies)
         np.maximum.at(peak, self.chunks[:, 2], out[:, 0])
         counts = np.zeros((self.n_bodies, 5))
-        np.add.at(counts, self.chunks[:, 2], out[:, 1:])
+        np.add.at(counts, self.chunks[:, 2], out[:, 1:6])
         return {
             body.name: BodyHealth(
                 speed=float(peak[b]),

@@ -1,0 +1,103 @@
+"""What a coupled macro step sends between host and device: a fixed few arrays per step, none per substep
+(on a GPU every host array a kernel takes is a copy and a wait), packed side by side (boundary states in,
+reactions out, the tunnelling check's poses) and unpacked on the device where they belong."""
+
+import numpy as np
+from conftest import SCENES, make_scene
+from taichi.lang import kernel_impl
+
+from cosim.scene import load_scene
+from cosim.scene.build import build_system
+
+
+def test_a_macro_step_hands_the_device_the_same_few_host_arrays_whatever_its_substeps():
+    """shake_container_2d at 8 and at 16 fixed substeps a frame: the same host arrays a step (boundary
+    states, reactions, survey, energies, the tunnelling check's poses and counts), and 8 launches more,
+    one per extra substep, none of which takes a host array."""
+    original = kernel_impl.Kernel.__call__
+    per_step = {}
+    for substeps in (8, 16):
+        scene = load_scene(
+            SCENES / "shake_container_2d.yaml", {"precision": "float64", "steps": 6}, [f"time.substeps={substeps}"]
+        )
+        sim = build_system(scene)
+        sim.step()  # compiles
+        tally = {"launches": 0, "arrays": 0}
+
+        def counted(self, *args, tally=tally, **kwargs):
+            tally["launches"] += 1
+            tally["arrays"] += sum(isinstance(a, np.ndarray) for a in args)
+            return original(self, *args, **kwargs)
+
+        kernel_impl.Kernel.__call__ = counted
+        try:
+            for _ in range(4):
+                sim.step()
+        finally:
+            kernel_impl.Kernel.__call__ = original
+        per_step[substeps] = {key: count / 4 for key, count in tally.items()}
+    assert per_step[16]["arrays"] == per_step[8]["arrays"] <= 6, per_step
+    assert per_step[16]["launches"] - per_step[8]["launches"] == 8, per_step
+
+
+def rotated_wall_scene(angle: float):
+    """A 0.2 m long, one-cell thin wall at (0.6, 0.5) turned by ``angle`` [rad] from upright, a small block."""
+    wall = {"name": "wall", "shape": {"type": "box", "size": [1 / 64, 0.2]}, "position": [0.6, 0.5], "rotation": angle}
+    block = {
+        "name": "block",
+        "material": {"type": "elastic", "E": 1e4, "nu": 0.3, "density": 1000},
+        "shape": {"type": "box", "center": [0.3, 0.3], "size": [0.05, 0.05]},
+    }
+    return make_scene(steps=2, mpm={"grid": {"cells": 64}, "bodies": [block]}, rigid={"bodies": [wall]})
+
+
+def test_boundary_states_reach_the_device_as_written_and_reactions_come_back_as_summed():
+    """Random states of 5 substeps (turns that are not their own transpose) written through the packed
+    array land in the source's fields; impulses placed in its fields come back in the Reactions layout."""
+    sim = build_system(rotated_wall_scene(0.3))
+    source = sim.mpm.boundaries[next(iter(sim.mpm.boundaries))]
+    rng = np.random.default_rng(0)
+    K, n = 5, source.n
+    angles = rng.uniform(-3, 3, size=(K, n))
+    states = {
+        "pos": rng.uniform(0.2, 0.8, size=(K, n, 2)),
+        "rot": np.stack(
+            [np.stack([np.cos(angles), -np.sin(angles)], -1), np.stack([np.sin(angles), np.cos(angles)], -1)], -2
+        ),
+        "vel": rng.normal(size=(K, n, 2)),
+        "omega": rng.normal(size=(K, n, 1)),
+    }
+    source.write(states)
+    for key, value in states.items():
+        np.testing.assert_allclose(
+            getattr(source, key).to_numpy()[:K].reshape(value.shape), value, rtol=1e-6, err_msg=key
+        )
+    impulse, angular = rng.normal(size=(K, n, 2)), rng.normal(size=(K, n, 1))
+    full = source.impulse.to_numpy()
+    full[:K] = impulse
+    source.impulse.from_numpy(full)
+    full = source.angular_impulse.to_numpy()
+    full[:K] = angular
+    source.angular_impulse.from_numpy(full)
+    back = source.reactions(K)
+    np.testing.assert_allclose(back["impulse"], impulse, rtol=1e-6)
+    np.testing.assert_allclose(back["angular_impulse"], angular, rtol=1e-6)
+
+
+def test_a_path_through_a_turned_wall_counts_as_going_through_and_one_past_its_mirror_image_does_not():
+    """The wall turned by 45 degrees spans (0.53, 0.57) to (0.67, 0.43); its mirror image (turned by -45
+    degrees, which a transposed rotation would give) spans (0.53, 0.43) to (0.67, 0.57). Particles moving
+    down at x = 0.55 from y = 0.6 to 0.5 cross the wall (at y = 0.55) and pass beside its mirror image,
+    which they would meet at y = 0.45."""
+    for angle, crossed in ((np.pi / 4, True), (-np.pi / 4, False)):
+        sim = build_system(rotated_wall_scene(angle))
+        tunnels, poses = sim.guard.tunnels, sim.rigid.poses()
+        state = sim.mpm.state()
+        n = len(state["x"])
+        before = dict(state, x=np.tile([0.55, 0.6], (n, 1)), v=np.zeros((n, 2)))
+        sim.mpm.set_state(before)
+        tunnels.reset()
+        tunnels.begin()
+        sim.mpm.set_state(dict(before, x=np.tile([0.55, 0.5], (n, 1))))
+        counts = tunnels.step(poses, poses)
+        assert counts.tolist() == [[n if crossed else 0]], angle
