@@ -18,6 +18,10 @@ import types
 import taichi as ti
 from taichi.lang.kernel_impl import _BoundedDifferentiableMethod
 
+from cosim.engines.taichi_frontend import memoise_positions
+
+memoise_positions()  # every class with kernels comes through here: their front end formats less
+
 
 def _getattribute(self, name: str):
     value = object.__getattribute__(self, name)
