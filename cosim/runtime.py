@@ -82,9 +82,9 @@ def ensure_taichi(arch: str = "cpu", precision: str = "float64", gradients: bool
 
     from cosim import kernel_cache
     from cosim.engines import field_pool
-    from cosim.engines.taichi_frontend import memoise_positions
+    from cosim.engines.taichi_frontend import memoise_front_end
 
-    memoise_positions()  # Taichi's own kernels (from_numpy, fill, ...) compile through it too
+    memoise_front_end()  # Taichi's own kernels (from_numpy, fill, ...) compile through it too
     if _current is not None:
         field_pool.clear()  # ti.reset frees every field
         kernel_cache.finish()  # ti.reset, Taichi writing its kernel cache in a window of its own

@@ -18,9 +18,9 @@ import types
 import taichi as ti
 from taichi.lang.kernel_impl import _BoundedDifferentiableMethod
 
-from cosim.engines.taichi_frontend import memoise_positions
+from cosim.engines.taichi_frontend import memoise_front_end
 
-memoise_positions()  # every class with kernels comes through here: their front end formats less
+memoise_front_end()  # every class with kernels comes through here: their front end formats less
 
 
 def _getattribute(self, name: str):
