@@ -51,37 +51,48 @@ def rotated_wall_scene(angle: float):
     return make_scene(steps=2, mpm={"grid": {"cells": 64}, "bodies": [block]}, rigid={"bodies": [wall]})
 
 
-def test_boundary_states_reach_the_device_as_written_and_reactions_come_back_as_summed():
+def set_rows(fld, values: np.ndarray) -> None:
+    """fld[:K] = values (the field holds more substeps than K)."""
+    full = fld.to_numpy()
+    full[: len(values)] = values
+    fld.from_numpy(full)
+
+
+def test_boundary_states_and_reactions_cross_between_host_and_device_in_the_layout_they_were_given():
     """Random states of 5 substeps (turns that are not their own transpose) written through the packed
-    array land in the source's fields; impulses placed in its fields come back in the Reactions layout."""
-    sim = build_system(rotated_wall_scene(0.3))
+    array land in the source's fields, their reactions cleared; impulses placed in its fields come back in
+    the Reactions layout; the adjoints come back (states) and go in (reactions) likewise."""
+    sim = build_system(rotated_wall_scene(0.3), requires_grad=True)
     source = sim.mpm.boundaries[next(iter(sim.mpm.boundaries))]
     rng = np.random.default_rng(0)
     K, n = 5, source.n
     angles = rng.uniform(-3, 3, size=(K, n))
+    turns = [np.stack([np.cos(angles), -np.sin(angles)], -1), np.stack([np.sin(angles), np.cos(angles)], -1)]
     states = {
         "pos": rng.uniform(0.2, 0.8, size=(K, n, 2)),
-        "rot": np.stack(
-            [np.stack([np.cos(angles), -np.sin(angles)], -1), np.stack([np.sin(angles), np.cos(angles)], -1)], -2
-        ),
+        "rot": np.stack(turns, -2),
         "vel": rng.normal(size=(K, n, 2)),
         "omega": rng.normal(size=(K, n, 1)),
     }
+    reactions = {"impulse": rng.normal(size=(K, n, 2)), "angular_impulse": rng.normal(size=(K, n, 1))}
+    for key, value in reactions.items():
+        set_rows(getattr(source, key), value)
     source.write(states)
     for key, value in states.items():
-        np.testing.assert_allclose(
-            getattr(source, key).to_numpy()[:K].reshape(value.shape), value, rtol=1e-6, err_msg=key
-        )
-    impulse, angular = rng.normal(size=(K, n, 2)), rng.normal(size=(K, n, 1))
-    full = source.impulse.to_numpy()
-    full[:K] = impulse
-    source.impulse.from_numpy(full)
-    full = source.angular_impulse.to_numpy()
-    full[:K] = angular
-    source.angular_impulse.from_numpy(full)
-    back = source.reactions(K)
-    np.testing.assert_allclose(back["impulse"], impulse, rtol=1e-6)
-    np.testing.assert_allclose(back["angular_impulse"], angular, rtol=1e-6)
+        np.testing.assert_array_equal(getattr(source, key).to_numpy()[:K], value, err_msg=key)
+    for key in reactions:
+        assert not np.any(getattr(source, key).to_numpy()[:K]), key
+    for key, value in reactions.items():
+        set_rows(getattr(source, key), value)
+    for key, value in source.reactions(K).items():
+        np.testing.assert_array_equal(value, reactions[key], err_msg=key)
+    for key, value in states.items():
+        set_rows(getattr(source, key).grad, 2 * value)
+    for key, value in source.state_grads(K).items():
+        np.testing.assert_array_equal(value, 2 * states[key], err_msg=key)
+    source.seed_reaction_grads(reactions)
+    for key, value in reactions.items():
+        np.testing.assert_array_equal(getattr(source, key).grad.to_numpy()[:K], value, err_msg=key)
 
 
 def test_a_path_through_a_turned_wall_counts_as_going_through_and_one_past_its_mirror_image_does_not():

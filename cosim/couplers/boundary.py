@@ -34,6 +34,8 @@ from cosim.engines import field_pool
 from cosim.engines.contract import BOUNDARY_KEYS, REACTION_KEYS
 from cosim.engines.data_oriented import data_oriented
 
+BOTH_KEYS = BOUNDARY_KEYS + REACTION_KEYS  # a write sets the states and clears the reactions
+
 
 @data_oriented
 class RigidBoundaries:
@@ -121,43 +123,71 @@ class RigidBoundaries:
     # ------------------------------------------------------------------ the MPM engine's side
     def write(self, states: dict[str, np.ndarray]) -> None:
         """Body states of substeps 0..K-1 (BoundaryStates, ``cosim.engines.contract``); clears their reactions.
-        Only the K slots are written (the fields hold max_substeps). One host array (``_pack``): on a GPU
-        each array a kernel takes from the host is a copy and a wait of its own."""
-        self._substeps = len(states["pos"])
-        self._write_states(self._pack(states), self._substeps)
+        Only the K slots are written (the fields hold max_substeps)."""
+        self._substeps = K = len(states["pos"])
+        zeros = {key: np.zeros((K, self.n, self.width(key))) for key in REACTION_KEYS}
+        self._exchange(self._pack({**states, **zeros}, BOTH_KEYS), K, BOTH_KEYS, False, False)
         if self.added is not None:
             self.added.write(states, self._substeps)
 
-    def _pack(self, states: dict[str, np.ndarray]) -> np.ndarray:
-        """(K, n, d + d^2 + d + 1|3): pos, rot (row-major), vel and omega of each substep and body, side by side."""
-        K = len(states["pos"])
-        parts = [np.reshape(states[k], (K, self.n, -1)) for k in BOUNDARY_KEYS]
+    # Each direction of a step's exchange is one host array (``_pack``, ``_unpack``) and one launch
+    # (``_exchange``): on a GPU every host array a kernel takes is a device allocation, a copy each way and a wait.
+    def width(self, key: str) -> int:
+        """Entries of field ``key``'s element: d (pos, vel, impulse), d^2 (rot), 1 or 3 (omega, angular_impulse)."""
+        fld = getattr(self, key)
+        return fld.n * fld.m
+
+    def _layout(self, keys: tuple[str, ...]) -> list[tuple[str, int]]:
+        """(key, its first column) of each key side by side in a packed array."""
+        starts = np.cumsum([0] + [self.width(key) for key in keys])
+        return [(key, int(start)) for key, start in zip(keys, starts)]
+
+    def _fields(self, keys: tuple[str, ...], adjoints: bool) -> list:
+        """(field, or its adjoint, its first column) of each key in a packed array (``_exchange``)."""
+        return [
+            (getattr(self, key).grad if adjoints else getattr(self, key), start) for key, start in self._layout(keys)
+        ]
+
+    def _pack(self, values: dict[str, np.ndarray], keys: tuple[str, ...]) -> np.ndarray:
+        """(K, n, sum of the keys' widths): values[key] (K, n, ...) flattened row-major, side by side."""
+        K = len(values[keys[0]])
+        parts = [np.reshape(values[key], (K, self.n, -1)) for key in keys]
         return np.ascontiguousarray(np.concatenate(parts, axis=-1), dtype=self.real)
 
-    @ti.kernel
-    def _write_states(self, packed: ti.types.ndarray(), K: ti.i32):
-        d = ti.static(self.dim)
-        ti.loop_config(serialize=True)  # substeps x bodies: far less work than a thread-pool dispatch (arch)
-        for s, b in ti.ndrange(K, self.n):
-            for i in ti.static(range(d)):
-                self.pos[s, b][i] = packed[s, b, i]
-                self.vel[s, b][i] = packed[s, b, d + d * d + i]
-                self.impulse[s, b][i] = 0.0
-                for j in ti.static(range(d)):
-                    self.rot[s, b][i, j] = packed[s, b, d + d * i + j]
-            for i in ti.static(range(self.wdim)):
-                self.omega[s, b][i] = packed[s, b, 2 * d + d * d + i]
-                self.angular_impulse[s, b][i] = 0.0
+    def _unpack(self, packed: np.ndarray, keys: tuple[str, ...]) -> dict[str, np.ndarray]:
+        """``_pack``'s inverse, in float64: {key: (K, n, d) for vectors, (K, n, d, d) for rot}."""
+        packed = packed.astype(np.float64)
+        out = {}
+        for key, start in self._layout(keys):
+            fld = getattr(self, key)
+            shape = (fld.n,) if fld.ndim == 1 else (fld.n, fld.m)
+            out[key] = packed[..., start : start + self.width(key)].reshape(packed.shape[:2] + shape)
+        return out
+
+    def _read(self, keys: tuple[str, ...], K: int, adjoints: bool) -> dict[str, np.ndarray]:
+        """Substeps 0..K-1 of the fields ``keys`` (their adjoints if ``adjoints``), unpacked."""
+        packed = np.zeros((K, self.n, sum(self.width(key) for key in keys)), dtype=self.real)
+        self._exchange(packed, K, keys, adjoints, True)
+        return self._unpack(packed, keys)
 
     @ti.kernel
-    def _read_reactions(self, packed: ti.types.ndarray(), K: ti.i32):
-        """Into ``packed`` (K, n, d + 1|3): each substep's and body's impulse, then its angular impulse."""
-        ti.loop_config(serialize=True)  # as in _write_states
+    def _exchange(
+        self, packed: ti.types.ndarray(), K: ti.i32, keys: ti.template(), adjoints: ti.template(), out: ti.template()
+    ):
+        """Substeps 0..K-1 of the fields ``keys`` (their adjoints if ``adjoints``) and ``packed`` in ``_pack``'s
+        layout: out of the fields into it if ``out``, else into the fields."""
+        ti.loop_config(serialize=True)  # substeps x bodies: far less work than a thread-pool dispatch (arch)
         for s, b in ti.ndrange(K, self.n):
-            for i in ti.static(range(self.dim)):
-                packed[s, b, i] = self.impulse[s, b][i]
-            for i in ti.static(range(self.wdim)):
-                packed[s, b, self.dim + i] = self.angular_impulse[s, b][i]
+            for fld, start in ti.static(self._fields(keys, adjoints)):
+                for k in ti.static(range(fld.n * fld.m)):
+                    if ti.static(fld.ndim == 1 and out):
+                        packed[s, b, start + k] = fld[s, b][k]
+                    elif ti.static(fld.ndim == 1):
+                        fld[s, b][k] = packed[s, b, start + k]
+                    elif ti.static(out):
+                        packed[s, b, start + k] = fld[s, b][k // fld.m, k % fld.m]
+                    else:
+                        fld[s, b][k // fld.m, k % fld.m] = packed[s, b, start + k]
 
     @staticmethod
     def work(states: dict[str, np.ndarray], reactions: dict[str, np.ndarray]) -> np.ndarray:
@@ -172,10 +202,7 @@ class RigidBoundaries:
     def reactions(self, K: int) -> dict[str, np.ndarray]:
         """Reactions of substeps 0..K-1: impulse (K, n, d) [N s], angular_impulse (K, n, 1|3) about pos;
         with an engagement, "mass" (n, k, k) (the class docstring)."""
-        packed = np.zeros((K, self.n, self.dim + self.wdim), dtype=self.real)
-        self._read_reactions(packed, K)
-        packed = packed.astype(np.float64)
-        out = {"impulse": packed[..., : self.dim], "angular_impulse": packed[..., self.dim :]}
+        out = self._read(REACTION_KEYS, K, adjoints=False)
         if self.added is not None and self.engagement is not None:
             out["mass"] = self.added.mass(self.engagement.engine._slot, K)
         return out
@@ -195,18 +222,15 @@ class RigidBoundaries:
     def seed_reaction_grads(self, grads: dict[str, np.ndarray]) -> None:
         """dL/d(reactions) of substeps 0..K-1 (Reactions layout, and "mass" with an engagement), after
         ``zero_grad`` and after the state's adjoint is seeded (the mass reads the particles at the end)."""
-        for key in REACTION_KEYS:
-            fld, values = getattr(self, key), grads[key]
-            full = np.zeros(fld.shape + (values.shape[-1],), dtype=self.real)
-            full[: len(values)] = values
-            fld.grad.from_numpy(full)
+        K = len(grads[REACTION_KEYS[0]])  # the later substeps' adjoints stay as ``zero_grad`` left them
+        self._exchange(self._pack(grads, REACTION_KEYS), K, REACTION_KEYS, True, False)
         g_mass = grads.get("mass")
         if g_mass is not None and self.added is not None and self.engagement is not None and np.any(g_mass):
             self.added.seed(g_mass, self.engagement.engine._slot, self._substeps)
 
     def state_grads(self, K: int) -> dict[str, np.ndarray]:
         """dL/d(body states) of substeps 0..K-1 (BoundaryStates layout; and of "handover") after a vjp."""
-        out = {k: getattr(self, k).grad.to_numpy()[:K].astype(np.float64) for k in BOUNDARY_KEYS}
+        out = self._read(BOUNDARY_KEYS, K, adjoints=True)
         if self.added is not None:
             out.update(self.added.state_grads())
         return out
