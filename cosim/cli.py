@@ -405,7 +405,7 @@ def make_parser() -> argparse.ArgumentParser:
         "prints current/peer ratios",
     )
     b.add_argument("--profile", action="store_true", help="mpm: Taichi's kernel profile of 3D 64³ float32")
-    b.add_argument("--arch", choices=["cpu", "cuda"], default="cpu", help="mpm: where Taichi runs (cuda: 30k-2M)")
+    b.add_argument("--arch", choices=["cpu", "cuda"], default="cpu", help="mpm, contact: where Taichi runs")
     b.add_argument("--threads", type=positive_ints, metavar="N,N", help="mpm: each config on these CPU thread counts")
     b.add_argument("--scatter", type=words, metavar="S,S", help="mpm: each config with these scatters (serial, ...)")
     b.add_argument("--particles", type=positive_int, metavar="N", help="mpm: one 3D float32 block of about N particles")

@@ -2,13 +2,32 @@
 
 from __future__ import annotations
 
+import functools
 import os
 import platform
+import shutil
+import subprocess
 from pathlib import Path
 
 
+@functools.lru_cache(maxsize=1)
+def gpu_names() -> str:
+    """The machine's NVIDIA GPUs as ``nvidia-smi`` names them ("2 x NVIDIA H100 80GB HBM3"), "" without one."""
+    if shutil.which("nvidia-smi") is None:
+        return ""
+    query = ["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"]
+    try:
+        res = subprocess.run(query, capture_output=True, text=True, timeout=20, check=False)
+    except (OSError, subprocess.TimeoutExpired):
+        return ""
+    names = [line.strip() for line in res.stdout.splitlines() if line.strip()] if res.returncode == 0 else []
+    if not names:
+        return ""
+    return names[0] if len(names) == 1 else f"{len(names)} x {names[0]}"
+
+
 def hardware_line() -> str:
-    """CPU model, core count and memory of this machine, for reports."""
+    """CPU model, core count and memory of this machine, and its GPU where it has one, for reports."""
     cpu = platform.processor() or platform.machine()
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
@@ -24,4 +43,5 @@ def hardware_line() -> str:
         mem = f", {psutil.virtual_memory().total / 2**30:.0f} GiB"
     except ImportError:
         pass
-    return f"{cpu}, {os.cpu_count()} cores{mem}, Python {platform.python_version()}"
+    gpu = gpu_names()
+    return f"{cpu}, {os.cpu_count()} cores{mem}{f', GPU {gpu}' if gpu else ''}, Python {platform.python_version()}"

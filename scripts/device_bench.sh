@@ -17,8 +17,9 @@
 # `echo /.peers/ >> .git/info/exclude`; only its softmac/engine/ is needed). The script installs the
 # wheels into /tmp/site, then runs these steps, each writing its report and CSV under $OUT:
 #   gpu      `cosim bench mpm --arch cuda`: 30k, 250k and 2M particles on the GPU;
-#   contact  `cosim run scenes/shake_container_2d.yaml --arch cuda` twice (the paper's contact benchmark,
-#            1100 frames, grid contact; run 2 loads run 1's kernels from the cache): wall_time_s, first_step_s;
+#   contact  `cosim bench contact --arch cuda --repeat 1` (the paper's contact benchmark: 1100 frames, every
+#            model and wall, the steps after the first timed), then `cosim run scenes/shake_container_2d.yaml
+#            --arch cuda` twice (grid contact; run 2 loads run 1's kernels from the cache): wall_time_s, first_step_s;
 #   peer     with .peers/SoftMAC, `cosim bench mpm --arch cuda --peer softmac=.peers/SoftMAC`: cosim / SoftMAC
 #            on the 30k block in float64, interleaved (SoftMAC's first 3D backward compiles for minutes);
 #   threads  `cosim bench mpm --particles 1000000 --threads 1,2,4,8,16 --scatter serial,coloured --quick`:
@@ -50,9 +51,11 @@ for step in $steps; do
     case "$step" in
     gpu)
         if q; then cosim bench mpm --arch "$arch" --quick --out "$out/gpu"; else cosim bench mpm --arch "$arch" --out "$out/gpu"; fi ;;
-    contact)  # the paper's contact benchmark, twice: run 2 loads run 1's kernels from the cache
+    contact)  # the paper's contact benchmark, then its grid run twice: run 2 loads run 1's kernels from the cache
         frames=1100
         if q; then frames=100; fi
+        if q; then cosim bench contact --arch "$arch" --repeat 1 --quick --out "$out/contact"
+        else cosim bench contact --arch "$arch" --repeat 1 --out "$out/contact"; fi
         for run in 1 2; do
             cosim run scenes/shake_container_2d.yaml --arch "$arch" --steps "$frames" --quiet --no-preview --out "$out/shake$run" || break
             python3 -c "import json,sys; m=json.load(open(sys.argv[1])); print('shake_container_2d run', sys.argv[2], {k: m[k] for k in ('steps', 'wall_time_s', 'first_step_s', 'kernel_compile_s', 'substeps_total', 'hardware')})" "$out/shake$run/metrics.json" "$run"

@@ -53,10 +53,11 @@ def test_cuda_without_a_gpu_is_a_clear_error():
 
 
 @pytest.mark.skipif(shutil.which("nvidia-smi") is not None, reason="this machine may have a CUDA GPU")
-def test_the_gpu_benchmark_without_a_gpu_is_a_clear_error(tmp_path):
-    result = run_cli("bench", "mpm", "--arch", "cuda", "--quick", "--out", str(tmp_path))
-    assert result.returncode == 2, result.stderr[-2000:]
-    assert "arch: cuda" in result.stderr and "Traceback" not in result.stderr
+def test_the_gpu_benchmarks_without_a_gpu_are_a_clear_error(tmp_path):
+    for what in ("mpm", "contact"):
+        result = run_cli("bench", what, "--arch", "cuda", "--quick", "--out", str(tmp_path))
+        assert result.returncode == 2, result.stderr[-2000:]
+        assert "arch: cuda" in result.stderr and "Traceback" not in result.stderr
 
 
 FLOAT32_ADJOINT = """

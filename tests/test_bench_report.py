@@ -1,6 +1,7 @@
 """Every `cosim bench` report starts with the command line, the date (UTC) and the hardware
 (``cosim.bench.report``), so that a report copied into docs/bench/ says what produced it and where."""
 
+import os
 from datetime import datetime, timedelta, timezone
 from pathlib import Path
 
@@ -59,3 +60,21 @@ def test_a_bench_writes_its_report_with_the_header(tmp_path, monkeypatch):
     assert lines[2].startswith("- date: ") and lines[2].endswith(" UTC")
     assert lines[3] == f"- hardware: {hardware_line()}"
     assert "| ran | 2 |" in lines
+
+
+def test_the_hardware_line_names_the_gpus_nvidia_smi_lists_and_none_without_it(tmp_path, monkeypatch):
+    """Two GPUs (a stand-in nvidia-smi on the PATH) are named once with their count; no tool, no GPU."""
+    from cosim.hardware import gpu_names
+
+    fake = tmp_path / "nvidia-smi"
+    fake.write_text("#!/bin/sh\necho 'NVIDIA H200'\necho 'NVIDIA H200'\n")
+    fake.chmod(0o755)
+    monkeypatch.setenv("PATH", f"{tmp_path}:{os.environ['PATH']}")
+    gpu_names.cache_clear()
+    try:
+        assert ", GPU 2 x NVIDIA H200, Python" in hardware_line()
+        monkeypatch.setenv("PATH", str(tmp_path / "nowhere"))
+        gpu_names.cache_clear()
+        assert "GPU" not in hardware_line()
+    finally:
+        gpu_names.cache_clear()

@@ -23,7 +23,7 @@ def test_the_contact_benchmark_says_it_runs_without_the_energy_and_tunnelling_gu
     import cosim.runtime
     from cosim.bench import contact, run_bench
 
-    def made_up(steps, repeat, workers, address):
+    def made_up(steps, repeat, workers, address, arch):
         rows = [
             {"model": m, "k": f"{k:g}" if k else "", "thickness": f"1/{round(1 / t)}", "penetrated": 0, "in_wall": 0,
              "rebound": 0, "seconds": 1.0, "energy_excess": -0.01}

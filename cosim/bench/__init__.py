@@ -49,18 +49,20 @@ def run_bench(
     ``steps`` / ``scenes`` (long): macro steps per scene, which shipped scenes (default one of each type);
     ``sizes`` / ``baseline`` / ``profile`` (mpm): 10k-1M particles; current/baseline ratios against the
     cosim in that folder (``repeat`` runs each); Taichi's kernel profile; ``arch``, ``threads``, ``scatters``,
-    ``particles``: on the GPU, on each CPU thread count, with each scatter, one block of that size
+    ``particles``: on the GPU (``arch`` also for contact), on each CPU thread count, with each scatter, one block of that size
     (``cosim.bench.mpm``); ``peer`` ("softmac=DIR"): current/peer ratios against SoftMAC's MPM in DIR
     (``cosim.bench.mpm_peer``).
     """
-    mpm_only = sizes or baseline is not None or profile or arch != "cpu" or threads or scatters or particles or peer
-    if what != "mpm" and mpm_only:
-        from cosim.errors import InputError
+    mpm_only = sizes or baseline is not None or profile or threads or scatters or particles or peer
+    from cosim.errors import InputError
 
+    if what != "mpm" and mpm_only:
         raise InputError(
-            "--sizes, --baseline, --peer, --profile, --arch, --threads, --scatter and --particles are options of "
+            "--sizes, --baseline, --peer, --profile, --threads, --scatter and --particles are options of "
             f"`bench mpm`, not of `bench {what}`"
         )
+    if what not in ("mpm", "contact") and arch != "cpu":
+        raise InputError(f"--arch is an option of `bench mpm` and `bench contact`, not of `bench {what}`")
     from cosim.bench.report import bench_command
 
     command = bench_command(
@@ -96,7 +98,9 @@ def run_bench(
     if what == "contact":
         from cosim.bench.contact import run_contact_bench
 
-        return run_contact_bench(out_dir, quick=quick, repeat=repeat, workers=workers, address=address, command=command)
+        return run_contact_bench(
+            out_dir, quick=quick, repeat=repeat, workers=workers, address=address, command=command, arch=arch
+        )
     if what == "mpm":
         from cosim.bench.mpm_modes import run_mpm_bench
 

@@ -69,13 +69,15 @@ class ContainerRun:
     """One shaken-container simulation that can be advanced in chunks (so that all models of a
     table advance in turn and share the machine's state when timed)."""
 
-    def __init__(self, model: str, stiffness: float | None, thickness: float, steps: int, track: bool = False):
+    def __init__(
+        self, model: str, stiffness: float | None, thickness: float, steps: int, track: bool = False, arch: str = "cpu"
+    ):
         from cosim.scene import load_scene
         from cosim.scene.build import build_system
         from cosim.scene.shipped import scenes_dir
 
         contact = {"model": model} | ({"stiffness": stiffness} if stiffness else {})
-        scene = load_scene(scenes_dir() / "shake_container_2d.yaml", {"steps": steps, "contact": contact})
+        scene = load_scene(scenes_dir() / "shake_container_2d.yaml", {"steps": steps, "contact": contact, "arch": arch})
         self.ring = scene.rigid.bodies[0]
         self.ring.shape.thickness = thickness
         self.sim = build_system(scene)
@@ -136,37 +138,41 @@ class ContainerRun:
         return out
 
 
-def run_table(thickness: float, steps: int, chunk: int = 10) -> list[dict]:
+def run_table(thickness: float, steps: int, arch: str = "cpu", chunk: int = 10) -> list[dict]:
     """Every model at one wall thickness, advanced in turn ``chunk`` frames at a time."""
-    runs = [ContainerRun(model, k, thickness, steps) for model, k in RUNS]
+    runs = [ContainerRun(model, k, thickness, steps, arch=arch) for model, k in RUNS]
     for _ in range(0, steps, chunk):
         for run in runs:
             run.advance(chunk)
     return [run.result() for run in runs]
 
 
-def run_case(model: str, stiffness: float | None, thickness: float, steps: int) -> dict:
+def run_case(model: str, stiffness: float | None, thickness: float, steps: int, arch: str = "cpu") -> dict:
     """One model at one wall thickness on its own (a Ray job of ``run_tables``)."""
-    run = ContainerRun(model, stiffness, thickness, steps)
+    run = ContainerRun(model, stiffness, thickness, steps, arch=arch)
     run.advance(steps)
     return run.result()
 
 
-def run_tables(steps: int, repeat: int, workers: int | None, address: str | None) -> list[list[dict]]:
+def run_tables(
+    steps: int, repeat: int, workers: int | None, address: str | None, arch: str = "cpu"
+) -> list[list[dict]]:
     """``repeat`` repetitions of every model x thickness: in this process, each thickness's models
     advanced in turn so that they share the machine's state (``run_table``), or with ``workers`` > 1
     or an ``address`` as Ray jobs (``cosim.scale.pool``), one per run, each on its own core(s)."""
     if not on_ray(workers, address):
         repeats = []
         for rep in range(repeat):
-            rows = [row for thickness in THICKNESSES for row in run_table(thickness, steps)]
+            rows = [row for thickness in THICKNESSES for row in run_table(thickness, steps, arch)]
             for row in rows:
                 _print_row(rep, repeat, row)
             repeats.append(rows)
         return repeats
     from cosim.scale.pool import run_jobs
 
-    cases = [(model, k, thickness, steps) for _ in range(repeat) for thickness in THICKNESSES for model, k in RUNS]
+    cases = [
+        (model, k, thickness, steps, arch) for _ in range(repeat) for thickness in THICKNESSES for model, k in RUNS
+    ]
     rows: list[dict | None] = [None] * len(cases)
     per_rep = len(cases) // repeat
     for outcome in run_jobs(run_case, cases, workers, address):
@@ -180,7 +186,7 @@ def run_tables(steps: int, repeat: int, workers: int | None, address: str | None
 def _print_row(rep: int, repeat: int, row: dict) -> None:
     print(
         f"  [{rep + 1}/{repeat}] {row['model']:9s} k={row['k']:5s} wall {row['thickness']}: penetrated "
-        f"{row['penetrated']:5d}, in wall {row['in_wall']:4d}, rebound {row['rebound']:4d}, {row['seconds']:.1f} s",
+        f"{row['penetrated']:5d}, in wall {row['in_wall']:4d}, rebound {row['rebound']:4d}, {row['seconds']:.2f} s",
         flush=True,
     )
 
@@ -216,21 +222,22 @@ def run_contact_bench(
     workers: int | None = None,
     address: str | None = None,
     command: str | None = None,
+    arch: str = "cpu",
 ) -> int:
     """All models x thicknesses, ``repeat`` times (on Ray with ``workers`` > 1 or an ``address``: see
-    ``run_tables``); writes contact.csv, contact.md (headed by ``command``, the date and the hardware) and
-    contact.png."""
+    ``run_tables``), Taichi on ``arch``; writes contact.csv, contact.md (headed by ``command``, the date and the
+    hardware) and contact.png."""
     from cosim.bench.report import bench_command, report_header
     from cosim.runtime import ensure_taichi
 
     announce(GUARDS_OFF)
-    ensure_taichi("cpu", "float32")
+    ensure_taichi(arch, "float32")
     out_dir.mkdir(parents=True, exist_ok=True)
     steps = 100 if quick else 1100
-    repeats = run_tables(steps, repeat, workers, address)
+    repeats = run_tables(steps, repeat, workers, address, arch)
     rows = _median_rows(repeats)
     # the forecast objective's decrease, in a separate short run: tracking it syncs every substep
-    tracked_run = ContainerRun("forecast", None, THICKNESSES[0], min(steps, 200), track=True)
+    tracked_run = ContainerRun("forecast", None, THICKNESSES[0], min(steps, 200), track=True, arch=arch)
     tracked_run.advance(tracked_run.steps)
     tracked = tracked_run.result()
     columns = [
@@ -251,7 +258,7 @@ def run_contact_bench(
         writer.writerows(r | {"guards_off": GUARDS_OFF.column()} for r in rows)
     lines = [
         (
-            f"Contact benchmark: {steps} frames of shake_container_2d; "
+            f"Contact benchmark: {steps} frames of shake_container_2d, Taichi on the {arch}; "
             f"seconds: median of {repeat} repetitions "
             + (f"as Ray jobs on {workers or 'all'} workers" if on_ray(workers, address) else "in one process")
         ),
@@ -263,7 +270,7 @@ def run_contact_bench(
         lo, hi = r["time_vs_grid_range"]
         lines.append(
             f"| {r['model']} | {r['k']} | {r['thickness']} | {r['penetrated']} | {r['in_wall']} | {r['rebound']} | "
-            f"{r['seconds']:.1f} | {r['time_vs_grid']:.2f} ({lo:.2f}-{hi:.2f}) |"
+            f"{r['seconds']:.2f} | {r['time_vs_grid']:.2f} ({lo:.2f}-{hi:.2f}) |"
         )
     if "objective_decrease" in tracked:
         lines += [
