@@ -149,3 +149,15 @@ def test_the_memory_estimate_says_how_many_checkpoints_the_device_holds():
     assert estimate.on_device == 2 and "2 on the x64" in estimate.describe()
     obj.evaluate(obj.initial_params(), grad=True)
     assert store.allocated == estimate.on_device * estimate.checkpoint_bytes
+
+
+def test_field_bytes_count_an_adjoint_only_where_one_is_allocated():
+    """Every Taichi field has a ``grad`` field object; only ``needs_grad`` places it: a gradient engine's
+    fields without adjoints (the affine momenta, the bins, the grid box) count once."""
+    import taichi as ti
+
+    from cosim.engines.device_memory import taichi_field_bytes
+
+    plain, with_adjoint = ti.field(ti.f64, shape=100), ti.Vector.field(3, ti.f64, shape=100, needs_grad=True)
+    assert taichi_field_bytes([plain]) == 800
+    assert taichi_field_bytes([with_adjoint]) == 2 * 2400

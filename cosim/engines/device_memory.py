@@ -40,6 +40,13 @@ def checkpoint_budget(objects: list, arch: str | None = None) -> int | None:
     return max(0, int(total * (1 - HEADROOM)) - taichi_field_bytes(objects))
 
 
+def adjoint_allocated(field) -> bool:
+    """Whether a Taichi field's adjoint holds memory: every field has a ``grad`` field object, placed only
+    with ``needs_grad``."""
+    grad = getattr(field, "grad", None)
+    return grad is not None and grad.snode.ptr is not None
+
+
 def taichi_field_bytes(objects: list) -> int:
     """Bytes of the Taichi fields reachable from the objects through cosim objects' attributes, lists
     and dicts (each field counted once), with their adjoints."""
@@ -57,7 +64,7 @@ def taichi_field_bytes(objects: list) -> int:
         if isinstance(value, ti.Field):
             entries = getattr(value, "n", 1) * getattr(value, "m", 1)
             size = math.prod(value.shape) * entries * np.dtype(to_numpy_type(value.dtype)).itemsize
-            total += size * (2 if getattr(value, "grad", None) is not None else 1)
+            total += size * (2 if adjoint_allocated(value) else 1)
         elif isinstance(value, (list, tuple)):
             pending.extend(value)
         elif isinstance(value, dict):

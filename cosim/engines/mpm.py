@@ -21,6 +21,7 @@ import numpy as np
 
 from cosim.engines.contract import declares
 from cosim.engines.data_oriented import data_oriented
+from cosim.engines.device_memory import adjoint_allocated
 from cosim.engines.mpm_adjoint import MPMAdjointKernels
 from cosim.engines.mpm_checkpoints import CheckpointStore, DeviceState
 from cosim.engines.mpm_energy import TERMS as ENERGY_TERMS
@@ -372,10 +373,10 @@ class MPMEngine(MPMAdjointKernels):
     # ------------------------------------------------------------ helpers
     def gradient_buffers_allocated(self) -> bool:
         """True when any field carries an allocated adjoint (only with requires_grad)."""
-        fields = [self.x, self.v, self.C, self.F, self.E, self.nu, self.affine, self.grid_mm, self.grid_v]
+        fields = [self.x, self.v, self.C, self.F, self.E, self.nu, self.grid_mm, self.grid_v]
         if self.control is not None:
             fields.append(self.control)
-        return any(f.grad is not None and f.grad.snode.ptr is not None for f in fields)
+        return any(adjoint_allocated(f) for f in fields)
 
     def body_slices(self) -> dict[str, slice]:
         return {b.name: slice(lo, hi) for b, (lo, hi) in zip(self.bodies, self.ranges)}

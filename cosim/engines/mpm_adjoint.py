@@ -9,7 +9,7 @@ about half the arithmetic of a node-by-node sum, and a short compile. The G2P ad
 is split in two: a parallel gather into the particle
 position and a serial scatter onto the grid, like the forward P2G (with no grid
 hook, straight onto the grid velocity's adjoint). The per-particle stress
-and the advection with its return mapping are written out too (``_stress_adjoint``,
+and the advection with its return mapping are written out too (``_stress_adjoint_particle``,
 ``_advect_adjoint``, with the materials' ``kirchhoff_vjp`` and ``project_vjp``): the
 3D polar decomposition's derivative is one 3x3 solve, where Taichi's reverse mode
 replayed its Newton iterations. Only the grid update (and the contact hooks' own
@@ -32,56 +32,77 @@ class MPMAdjointKernels(MPMKernels):
     """The MPM kernels plus the adjoint of one substep (``_substep_grad``)."""
 
     @ti.kernel
-    def _p2g_adjoint(self, b: ti.i32, start: ti.i32, end: ti.i32, src: ti.i32, g: ti.i32, control_share: float):
-        """Adjoint of ``_p2g``: a parallel gather of the grid momentum and mass adjoints into the
-        particle's velocity, affine momentum, position, control and particle-hook momenta."""
+    def _particle_adjoint(
+        self,
+        mat: ti.template(),
+        b: ti.i32,
+        start: ti.i32,
+        end: ti.i32,
+        src: ti.i32,
+        g: ti.i32,
+        dt: float,
+        control_share: float,
+        material_grads: ti.template(),
+    ):
+        """Adjoint of body b's P2G (``_p2g``) and then of its stress (``_stress``), particle by particle in
+        one parallel pass: the affine momentum's adjoint the first gives the second stays in registers (a
+        field of d^2 entries per particle and grid copy, written and read back, before)."""
         ti.loop_config(serialize=self.serial_particle_loops)
-        for p in range(start, end):
-            m_p = self.p_mass[b]
-            base, fx, w = self.stencil(self.x[src, p])
-            slopes = self.stencil_slopes(fx)
-            affine = self.affine[g, p]
-            # what node o received: mom + affine (o - fx) dx = at_base + steps o (``_p2g``)
-            steps = affine * self.dx
-            at_base = self.particle_momentum(src, g, p, m_p, control_share) - steps @ fx
-            d = ti.static(self.dim)
-            g_mom = ti.Vector.zero(float, d)
-            columns = [ti.Vector.zero(float, d) for _ in ti.static(range(d))]  # column k: sum_o W g_o o_k
-            g_fx = ti.Vector.zero(float, d)  # d/d fx of sum_o W_o h_o, h_o = g_o . (what o received) + m g_m,o
-            for row in ti.static(self.rows):  # row by row (``row_weight``)
-                row_base = self.plus_steps(at_base, steps, row, 0)
-                along_g = ti.Vector.zero(float, d)
-                moment_g = ti.Vector.zero(float, d)
-                along_h, slope_h = 0.0, 0.0
-                for c in ti.static(range(3)):
-                    node = base + self.row_node(row, c)
-                    g_mm = self.grid_mm.grad[g, node]
-                    g_node = ti.Vector([g_mm[k] for k in ti.static(range(d))])
-                    h = g_node.dot(self.plus_steps(row_base, steps, [c], d - 1)) + m_p * g_mm[d]
-                    weighted = w[c][d - 1] * g_node
-                    along_g += weighted
-                    if ti.static(c > 0):
-                        moment_g += c * weighted
-                    along_h += w[c][d - 1] * h
-                    slope_h += slopes[c][d - 1] * h
-                w_row = self.row_weight(w, row)
-                g_mom += w_row * along_g
-                columns[d - 1] += w_row * moment_g
-                for k in ti.static(range(d - 1)):
-                    if ti.static(row[k] > 0):
-                        columns[k] += (row[k] * w_row) * along_g
-                g_fx += self.row_gradient(w, slopes, row, along_h, slope_h)
-            # sum_o W g_o (o - fx)^T dx, and d dpos / dx = -I: sum_o W affine^T g_o, both out of the loop
-            g_affine = self.dx * (ti.Matrix.cols(columns) - g_mom.outer_product(fx))
-            g_x = self.inv_dx * g_fx - affine.transpose() @ g_mom
-            # each particle owns these adjoint entries: plain adds, not atomics
-            self.v.grad[src, p] = self.v.grad[src, p] + m_p * g_mom
-            if ti.static(self.cfg.has_controls):
-                self.control.grad[p] = self.control.grad[p] + control_share * g_mom
-            for hook in ti.static(self.particle_hooks):
-                hook.output.grad[g, p] = hook.output.grad[g, p] + g_mom
-            self.affine.grad[g, p] = self.affine.grad[g, p] + g_affine
-            self.x.grad[src, p] = self.x.grad[src, p] + g_x
+        for p in range(start, end):  # each particle owns its adjoint entries: plain adds, not atomics
+            g_affine = self._p2g_adjoint_particle(b, p, src, g, control_share)
+            self._stress_adjoint_particle(mat, b, p, src, dt, g_affine, material_grads)
+        if ti.static(material_grads):
+            self._lame_grad(b)
+
+    @ti.func
+    def _p2g_adjoint_particle(self, b, p, src, g, control_share):
+        """Adjoint of particle p's scatter in ``_p2g``: a gather of the grid momentum and mass adjoints into
+        its velocity, position, control and particle-hook momenta; returns its affine momentum's adjoint."""
+        m_p = self.p_mass[b]
+        base, fx, w = self.stencil(self.x[src, p])
+        slopes = self.stencil_slopes(fx)
+        affine = self.affine[g, p]
+        # what node o received: mom + affine (o - fx) dx = at_base + steps o (``_p2g``)
+        steps = affine * self.dx
+        at_base = self.particle_momentum(src, g, p, m_p, control_share) - steps @ fx
+        d = ti.static(self.dim)
+        g_mom = ti.Vector.zero(float, d)
+        columns = [ti.Vector.zero(float, d) for _ in ti.static(range(d))]  # column k: sum_o W g_o o_k
+        g_fx = ti.Vector.zero(float, d)  # d/d fx of sum_o W_o h_o, h_o = g_o . (what o received) + m g_m,o
+        for row in ti.static(self.rows):  # row by row (``row_weight``)
+            row_base = self.plus_steps(at_base, steps, row, 0)
+            along_g = ti.Vector.zero(float, d)
+            moment_g = ti.Vector.zero(float, d)
+            along_h, slope_h = 0.0, 0.0
+            for c in ti.static(range(3)):
+                node = base + self.row_node(row, c)
+                g_mm = self.grid_mm.grad[g, node]
+                g_node = ti.Vector([g_mm[k] for k in ti.static(range(d))])
+                h = g_node.dot(self.plus_steps(row_base, steps, [c], d - 1)) + m_p * g_mm[d]
+                weighted = w[c][d - 1] * g_node
+                along_g += weighted
+                if ti.static(c > 0):
+                    moment_g += c * weighted
+                along_h += w[c][d - 1] * h
+                slope_h += slopes[c][d - 1] * h
+            w_row = self.row_weight(w, row)
+            g_mom += w_row * along_g
+            columns[d - 1] += w_row * moment_g
+            for k in ti.static(range(d - 1)):
+                if ti.static(row[k] > 0):
+                    columns[k] += (row[k] * w_row) * along_g
+            g_fx += self.row_gradient(w, slopes, row, along_h, slope_h)
+        # sum_o W g_o (o - fx)^T dx, and d dpos / dx = -I: sum_o W affine^T g_o, both out of the loop
+        g_affine = self.dx * (ti.Matrix.cols(columns) - g_mom.outer_product(fx))
+        g_x = self.inv_dx * g_fx - affine.transpose() @ g_mom
+        # each particle owns these adjoint entries: plain adds, not atomics
+        self.v.grad[src, p] = self.v.grad[src, p] + m_p * g_mom
+        if ti.static(self.cfg.has_controls):
+            self.control.grad[p] = self.control.grad[p] + control_share * g_mom
+        for hook in ti.static(self.particle_hooks):
+            hook.output.grad[g, p] = hook.output.grad[g, p] + g_mom
+        self.x.grad[src, p] = self.x.grad[src, p] + g_x
+        return g_affine
 
     @ti.func
     def velocity_grad(self, g, I, g_v):
@@ -161,35 +182,20 @@ class MPMAdjointKernels(MPMKernels):
             source.velocity_grad(g, I, self.gathered_grad[I])
             self.gathered_grad[I] = ti.Vector.zero(float, self.dim)
 
-    @ti.kernel
-    def _stress_adjoint(
-        self,
-        mat: ti.template(),
-        b: ti.i32,
-        start: ti.i32,
-        end: ti.i32,
-        src: ti.i32,
-        g: ti.i32,
-        dt: float,
-        material_grads: ti.template(),
-    ):
-        """Adjoint of ``_stress`` (affine = s tau(F, C, mu, lam) + m_p C, s = -dt V0 4 / dx^2): from
-        dL/d(affine) to dL/dF, dL/dC and the body's dL/dE, dL/dnu (through the Lame parameters)."""
-        ti.loop_config(serialize=self.serial_particle_loops)
-        for p in range(start, end):  # each particle owns its adjoint entries: plain adds, not atomics
-            mu, lam = self._lame(b)
-            m_p, vol = self.p_mass[b], self.p_vol[b]
-            affine_bar = self.affine.grad[g, p]
-            tau_bar = (-dt * vol * 4.0 * self.inv_dx * self.inv_dx) * affine_bar
-            F_bar, C_bar, mu_bar, lam_bar = mat.kirchhoff_vjp(
-                self.F[src, p], self.C[src, p], mu, lam, self.viscosity[b], tau_bar
-            )
-            self.F.grad[src, p] = self.F.grad[src, p] + F_bar
-            self.C.grad[src, p] = self.C.grad[src, p] + C_bar + m_p * affine_bar
-            if ti.static(material_grads):
-                self.lame_bar[None] += ti.Vector([mu_bar, lam_bar])
+    @ti.func
+    def _stress_adjoint_particle(self, mat: ti.template(), b, p, src, dt, affine_bar, material_grads: ti.template()):
+        """Adjoint of particle p's stress in ``_stress`` (affine = s tau(F, C, mu, lam) + m_p C, s = -dt V0 4 /
+        dx^2): from dL/d(affine) to dL/dF, dL/dC and, summed in ``lame_bar``, dL/dmu, dL/dlam."""
+        mu, lam = self._lame(b)
+        m_p, vol = self.p_mass[b], self.p_vol[b]
+        tau_bar = (-dt * vol * 4.0 * self.inv_dx * self.inv_dx) * affine_bar
+        F_bar, C_bar, mu_bar, lam_bar = mat.kirchhoff_vjp(
+            self.F[src, p], self.C[src, p], mu, lam, self.viscosity[b], tau_bar
+        )
+        self.F.grad[src, p] = self.F.grad[src, p] + F_bar
+        self.C.grad[src, p] = self.C.grad[src, p] + C_bar + m_p * affine_bar
         if ti.static(material_grads):
-            self._lame_grad(b)
+            self.lame_bar[None] += ti.Vector([mu_bar, lam_bar])
 
     @ti.kernel
     def _advect_adjoint(
@@ -206,7 +212,7 @@ class MPMAdjointKernels(MPMKernels):
         """Adjoint of the advection in ``_g2p_advect`` (x' = x + dt v', F' = project((I + dt C') F)): from dL/dx', dL/dF' to
         dL/dx, dL/dv', dL/dC', dL/dF and the body's dL/dE, dL/dnu (a plastic body's yield limit
         depends on mu). The first kernel of substep src's adjoint, it starts slot src's particle adjoints
-        (x, F assigned, v, C and the affine momentum's zeroed; the later kernels add to them), so no fill
+        (x, F assigned, v and C zeroed; the later kernels add to them), so no fill
         of every slot precedes the backward (it was 4.5% of a 3D backward)."""
         ti.loop_config(serialize=self.serial_particle_loops)
         for p in range(start, end):  # each particle owns its adjoint entries: plain adds, not atomics
@@ -215,7 +221,6 @@ class MPMAdjointKernels(MPMKernels):
             self.x.grad[src, p] = x_bar
             self.v.grad[src, p] = ti.zero(self.v.grad[src, p])
             self.C.grad[src, p] = ti.zero(self.C.grad[src, p])
-            self.affine.grad[src, p] = ti.zero(self.affine.grad[src, p])  # grid copy src: substep src's
             self.v.grad[dst, p] = self.v.grad[dst, p] + dt * x_bar
             F = self.F[src, p]
             step = ti.Matrix.identity(float, self.dim) + dt * self.C[dst, p]
@@ -278,8 +283,7 @@ class MPMAdjointKernels(MPMKernels):
         self._grid_update.grad(s, dt, self._mass_floor())
         for b in reversed(range(len(self.bodies))):
             lo, hi = self.ranges[b]
-            self._p2g_adjoint(b, lo, hi, s, s, control_share)
-            self._stress_adjoint(self.materials[b], b, lo, hi, s, s, dt, self.material_grads)
+            self._particle_adjoint(self.materials[b], b, lo, hi, s, s, dt, control_share, self.material_grads)
         for hook in reversed(self.particle_hooks):
             hook.apply_grad(s, s, s, dt)
         for prepare_grad in reversed(self.substep_preparer_grads):

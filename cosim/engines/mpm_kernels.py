@@ -91,7 +91,8 @@ class MPMKernels(StencilFunctions, SlotIO, ParticleBins, P2GKernels):
         self.grid_mm = field_pool.vector(self, d + 1, float, shape=(self.n_grids, *self.nodes), needs_grad=grad)
         self.grid_v = field_pool.vector(self, d, float, shape=(self.n_grids, *self.nodes), needs_grad=grad)
         self.gravity = ti.Vector([float(g) for g in config.gravity])
-        self.affine = field_pool.matrix(self, d, d, float, shape=(self.n_grids, n), needs_grad=grad)
+        # its adjoint never leaves a particle's registers (``MPMAdjointKernels._particle_adjoint``): no field for it
+        self.affine = field_pool.matrix(self, d, d, float, shape=(self.n_grids, n))
         # the nodes the P2G of each grid copy's substep touched: [active_lo, active_hi) per axis (``_p2g``)
         self.active_lo = field_pool.vector(self, d, ti.i32, shape=self.n_grids)
         self.active_hi = field_pool.vector(self, d, ti.i32, shape=self.n_grids)
