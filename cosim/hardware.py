@@ -5,22 +5,15 @@ from __future__ import annotations
 import functools
 import os
 import platform
-import shutil
-import subprocess
 from pathlib import Path
 
 
 @functools.lru_cache(maxsize=1)
 def gpu_names() -> str:
     """The machine's NVIDIA GPUs as ``nvidia-smi`` names them ("2 x NVIDIA H100 80GB HBM3"), "" without one."""
-    if shutil.which("nvidia-smi") is None:
-        return ""
-    query = ["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"]
-    try:
-        res = subprocess.run(query, capture_output=True, text=True, timeout=20, check=False)
-    except (OSError, subprocess.TimeoutExpired):
-        return ""
-    names = [line.strip() for line in res.stdout.splitlines() if line.strip()] if res.returncode == 0 else []
+    from cosim.engines.device_memory import nvidia_smi
+
+    names = nvidia_smi("name")
     if not names:
         return ""
     return names[0] if len(names) == 1 else f"{len(names)} x {names[0]}"

@@ -18,14 +18,22 @@ from cosim.engines.arch import CPU_ARCHES, running_arch
 HEADROOM = 0.10  # of a GPU's memory left free for Taichi's runtime, its kernels' scratch and other users
 
 
+def nvidia_smi(query: str) -> list[str]:
+    """``nvidia-smi --query-gpu=<query>``'s value per GPU (no units), [] without the tool or a GPU."""
+    if shutil.which("nvidia-smi") is None:
+        return []
+    args = ["nvidia-smi", f"--query-gpu={query}", "--format=csv,noheader,nounits"]
+    try:
+        res = subprocess.run(args, capture_output=True, text=True, timeout=20, check=False)
+    except (OSError, subprocess.TimeoutExpired):
+        return []
+    return [line.strip() for line in res.stdout.splitlines() if line.strip()] if res.returncode == 0 else []
+
+
 def gpu_memory_bytes() -> int | None:
     """The first GPU's total memory [bytes] (``nvidia-smi``), None without the tool or a GPU."""
-    if shutil.which("nvidia-smi") is None:
-        return None
-    query = ["nvidia-smi", "--query-gpu=memory.total", "--format=csv,noheader,nounits"]
-    res = subprocess.run(query, capture_output=True, text=True, check=False)
-    first = res.stdout.split()[:1] if res.returncode == 0 else []
-    return int(float(first[0]) * 2**20) if first else None
+    totals = nvidia_smi("memory.total")
+    return int(float(totals[0]) * 2**20) if totals else None
 
 
 def checkpoint_budget(objects: list, arch: str | None = None) -> int | None:

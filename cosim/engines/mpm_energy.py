@@ -15,7 +15,6 @@ import taichi as ti
 
 from cosim.engines.data_oriented import data_oriented
 from cosim.engines.materials import polar_rotation
-from cosim.engines.mpm_watch import body_chunks, chunk_table
 
 TERMS = ("kinetic", "gravity", "strain", "volume")
 
@@ -26,9 +25,8 @@ class EnergyMeter:
 
     def __init__(self, engine):
         self.engine = engine
-        self.chunks = body_chunks(engine.ranges)
-        self.n_chunks = len(self.chunks)
-        self.chunk_table = chunk_table(self, self.chunks)
+        watch = engine.watch  # the same particle chunks as the survey's, on the device once
+        self.chunks, self.n_chunks, self.chunk_table = watch.chunks, watch.n_chunks, watch.chunk_table
 
     @ti.func
     def strain_density(self, b, F):
