@@ -58,6 +58,10 @@ def test_mpm_flags_that_do_not_go_together_are_refused_by_name():
         check_mode(True, None, False, "cpu", None, None, 1000)
     with pytest.raises(InputError, match="options of `bench mpm`, not of `bench contact`"):
         run_bench("contact", Path("unused"), threads=[2])
+    with pytest.raises(
+        InputError, match="--arch is an option of `bench mpm` and `bench contact`, not of `bench cloth`"
+    ):
+        run_bench("cloth", Path("unused"), arch="cuda")
 
 
 def test_a_peer_is_named_and_found_or_refused_with_the_fix(tmp_path):
