@@ -70,7 +70,8 @@ def test_adjoint_matches_finite_differences_2d(objective, param):
 
 def test_material_gradients_are_skipped_only_when_not_asked_for(objective):
     """Without material parameters the adjoint skips dL/dE and dL/dnu (the costliest part of the stress
-    adjoint); the gradients asked for are the same as when they are computed."""
+    adjoint); the gradients asked for are the same as when they are computed, to round-off (the two
+    compiled adjoint kernels differ, and fast math may contract their arithmetic differently)."""
     params = objective.initial_params()
     asked = {"v0": params["v0"], "impulse": params["impulse"]}
     _, without = objective.evaluate(asked, grad=True)
@@ -78,7 +79,9 @@ def test_material_gradients_are_skipped_only_when_not_asked_for(objective):
     _, with_material = objective.evaluate({**asked, "E": params["E"]}, grad=True)
     assert objective.system.mpm.material_grads and np.abs(with_material["E"]).max() > 0
     for key in asked:
-        np.testing.assert_array_equal(without[key], with_material[key])
+        np.testing.assert_allclose(
+            without[key], with_material[key], rtol=0, atol=1e-12 * np.abs(with_material[key]).max()
+        )
 
 
 def test_plastic_body_yields_during_the_gradient_rollout(objective):

@@ -28,12 +28,13 @@ def engine(scatter: str, dim: int = 3, n: int = 3000, grad_substeps: int = 0) ->
     return MPMEngine(MPMConfig(dim, (CELLS,) * dim, DX, gravity, scatter=scatter, **grad), [body])
 
 
-def test_the_coloured_scatter_hands_the_grid_every_particles_mass_and_momentum_once():
+def test_the_parallel_scatters_hand_the_grid_every_particles_mass_and_momentum_once():
     """After P2G the grid holds sum m_p and sum m_p v_p (the affine and stress parts sum to zero over a
     B-spline stencil), node by node the serial scatter's grid to round-off: a particle left out of the
-    block lists, or listed twice, would move the totals by 1/3000 of them."""
+    block lists, or listed twice, would move the totals by 1/3000 of them; a stress the parallel scatters
+    compute themselves (``stress_in_scatter``) other than the serial one's separate loop would move nodes."""
     grids = {}
-    for scatter in ("serial", "coloured"):
+    for scatter in ("serial", "coloured", "atomic"):
         mpm = engine(scatter)
         mpm.advance(1e-4, 1)  # a step, so that C and F are not trivial
         mpm.pre_coupling(mpm.slot, 0, 1e-4)
@@ -45,7 +46,8 @@ def test_the_coloured_scatter_hands_the_grid_every_particles_mass_and_momentum_o
         np.testing.assert_allclose(totals[3], m.sum(), rtol=1e-12)
         np.testing.assert_allclose(totals[:3], (m[:, None] * x["v"]).sum(axis=0), rtol=0, atol=1e-12 * m.sum())
     scale = np.abs(grids["serial"]).max()
-    np.testing.assert_allclose(grids["coloured"], grids["serial"], rtol=0, atol=1e-13 * scale)
+    for scatter in ("coloured", "atomic"):
+        np.testing.assert_allclose(grids[scatter], grids["serial"], rtol=0, atol=1e-13 * scale)
 
 
 def test_every_particle_stays_listed_in_a_block_its_stencil_is_within_drift_of():

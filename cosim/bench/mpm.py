@@ -207,14 +207,16 @@ def write_csv(path: Path, rows: list[dict]) -> None:
     print(f"wrote {path}")
 
 
-def particle_bytes(dim: int, precision: str) -> int:
-    """Bytes of particle arrays one forward substep moves per particle (one body, no hooks): the stress
-    reads F and C and writes the affine momentum (3 d^2 floats), P2G reads x, v and that affine part
-    (2 d + d^2), G2P with the advection reads x and F and writes x, v, C and F (3 d + 3 d^2). The grid's
-    nodes (an eighth as many as the particles in 3D at 8 per cell) are left out: a particle's stencil
-    mostly hits what its neighbours brought into cache. Times the forward rate: the memory bandwidth the
-    forward would need if it were bound by it (``fwd_GBps``), against the machine's peak."""
-    return (7 * dim * dim + 5 * dim) * (4 if precision == "float32" else 8)
+def particle_bytes(dim: int, precision: str, scatter: str) -> int:
+    """Bytes of particle arrays one forward substep moves per particle (one body, no hooks). P2G reads x, v,
+    F and C (2 d + 2 d^2 floats); beside the serial scatter the stress is its own loop, which reads F and C
+    and writes the affine momentum that the scatter reads back (2 d^2 more: ``stress_in_scatter``). G2P
+    with the advection reads x and F and writes x, v, C and F (3 d + 3 d^2). The grid's nodes (an eighth
+    as many as the particles in 3D at 8 per cell) are left out: a particle's stencil mostly hits what its
+    neighbours brought into cache. Times the forward rate: the memory bandwidth the forward would need if
+    it were bound by it (``fwd_GBps``), against the machine's peak."""
+    floats = 5 * dim * dim + 5 * dim + (2 * dim * dim if scatter == "serial" else 0)
+    return floats * (4 if precision == "float32" else 8)
 
 
 def run_throughput(out_dir: Path, configs: list[dict], name: str, command: str | None = None) -> int:
@@ -225,7 +227,7 @@ def run_throughput(out_dir: Path, configs: list[dict], name: str, command: str |
     for cfg in configs:
         rows.append({k: v for k, v in run_config(cfg).items() if k != "package"})
         r = rows[-1]
-        r["fwd_GBps"] = r["fwd_Mpss"] * 1e6 * particle_bytes(r["dim"], r["precision"]) / 1e9
+        r["fwd_GBps"] = r["fwd_Mpss"] * 1e6 * particle_bytes(r["dim"], r["precision"], r["scatter"]) / 1e9
         print(f"  done {r['dim']}D {r['precision']} {r['particles']:,} {r['arch']} {r['threads']} threads "
               f"{r['scatter']}: {r['fwd_Mpss']:.2f} M/s forward", flush=True)  # fmt: skip
     print(f"\nMPM benchmark on {hardware_line()}; steps = substeps x macro steps, elastic block, dt 1e-4 s")

@@ -56,7 +56,7 @@ class ParticlePenalty:
         self.accel_per_depth = self.stiffness * STANDARD_GRAVITY / engine.dx  # [1/s^2]
         self.friction = float(friction)
         grad = engine.cfg.requires_grad
-        self.output = field_pool.vector(self, engine.dim, float, shape=engine.affine.shape, needs_grad=grad)
+        self.output = field_pool.vector(self, engine.dim, float, shape=engine.per_particle, needs_grad=grad)
         engine.attach_particle_hook(self)
 
     # ``_apply``'s loop is written in it (Taichi differentiates it and refuses a loop inlined from a
@@ -174,7 +174,7 @@ class ForecastContact:
         self.offset = AUTO_OFFSET if offset is None else float(offset)
         grad = engine.cfg.requires_grad
         d = engine.dim
-        per_particle = engine.affine.shape  # (grid copies, particles)
+        per_particle = engine.per_particle  # (grid copies, particles)
         self.v_init = field_pool.vector(self, d, float, shape=per_particle, needs_grad=grad)
         self.residual = field_pool.vector(self, d, float, shape=per_particle, needs_grad=grad)
         self.constrained = field_pool.scalar(self, ti.i32, shape=per_particle)

@@ -37,7 +37,7 @@ class Handover:
         self.engine = engine
         self.sources = list(sources)
         grad = engine.cfg.requires_grad
-        self.output = field_pool.vector(self, engine.dim, float, shape=engine.affine.shape, needs_grad=grad)
+        self.output = field_pool.vector(self, engine.dim, float, shape=engine.per_particle, needs_grad=grad)
         self._held = -1  # the grid copy whose output holds substep 0's momenta (-1: none)
         engine.attach_particle_hook(self)
 

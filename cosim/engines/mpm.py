@@ -321,7 +321,7 @@ class MPMEngine(MPMAdjointKernels):
             source.write(boundaries[name])
 
     def _zero_grad(self) -> None:
-        # the particle adjoints of each slot are started by its substep's ``_advect_adjoint``, the grids' by
+        # the particle adjoints of each slot are started by its substep's ``_g2p_adjoint``, the grids' by
         # ``_zero_grid_grad``: only what every substep adds to is zeroed here
         fields = [self.E, self.nu]
         for fld in fields + ([self.control] if self.control is not None else []):

@@ -6,11 +6,12 @@ written out instead. Their gathers
 sum the stencil row by row like the forward G2P (``row_weight``, ``row_gradient``:
 a row's sums along the last axis, then its weight and the weight's gradient once),
 about half the arithmetic of a node-by-node sum, and a short compile. The G2P adjoint
-is split in two: a parallel gather into the particle
-position and a serial scatter onto the grid, like the forward P2G (with no grid
-hook, straight onto the grid velocity's adjoint). The per-particle stress
+is a parallel gather into the particle position, in one pass with the advection's adjoint
+(``_g2p_adjoint``), and a scatter onto the grid (with no grid hook, straight onto the grid
+velocity's adjoint): in the same pass with the atomic scatter, else its own serial or coloured
+launches, like the forward P2G. The per-particle stress
 and the advection with its return mapping are written out too (``_stress_adjoint_particle``,
-``_advect_adjoint``, with the materials' ``kirchhoff_vjp`` and ``project_vjp``): the
+``_advect_adjoint_particle``, with the materials' ``kirchhoff_vjp`` and ``project_vjp``): the
 3D polar decomposition's derivative is one 3x3 solve, where Taichi's reverse mode
 replayed its Newton iterations. Only the grid update (and the contact hooks' own
 rules) keep Taichi's autodiff.
@@ -113,8 +114,14 @@ class MPMAdjointKernels(MPMKernels):
     def _g2p_adjoint_particle(self, p, src, dst, g, out: ti.template(), atomic: ti.template()):
         """Scatter particle p's new velocity and affine adjoints onto ``out`` over its stencil."""
         base, fx, w = self.stencil(self.x[src, p])
-        g_C = (4.0 * self.inv_dx) * self.C.grad[dst, p]
-        at_base = self.v.grad[dst, p] - g_C @ fx  # node o's adjoint / weight: g_v + g_C (o - fx)
+        self._g2p_adjoint_spread(base, fx, w, self.v.grad[dst, p], self.C.grad[dst, p], g, out, atomic)
+
+    @ti.func
+    def _g2p_adjoint_spread(self, base, fx, w, v_bar, C_bar, g, out: ti.template(), atomic: ti.template()):
+        """Add a particle's new velocity and affine adjoints (``v_bar``, ``C_bar``) to ``out`` (grid copy g)
+        over its stencil (base node, fractional position, weights)."""
+        g_C = (4.0 * self.inv_dx) * C_bar
+        at_base = v_bar - g_C @ fx  # node o's adjoint / weight: g_v + g_C (o - fx)
         for offset in ti.static(ti.grouped(ti.ndrange(*([3] * self.dim)))):
             g_node = self.stencil_weight(w, offset) * self.plus_steps(at_base, g_C, offset, 0)
             self.add_at(out, g, base + offset, g_node, atomic)
@@ -139,34 +146,30 @@ class MPMAdjointKernels(MPMKernels):
             for p in range(self.count[None]):
                 self._g2p_adjoint_particle(p, src, dst, g, out, scatter == "atomic")
 
-    @ti.kernel
-    def _g2p_adjoint_position(self, src: ti.i32, dst: ti.i32, g: ti.i32, source: ti.template()):
-        """Adjoint of G2P (``_g2p_advect``) with respect to the particle position (weights and offsets move with it):
-        a parallel gather, each particle owning its entry."""
-        ti.loop_config(serialize=self.serial_particle_loops)
-        for p in range(self.count[None]):
-            base, fx, w = self.stencil(self.x[src, p])
-            slopes = self.stencil_slopes(fx)
-            g_C = (4.0 * self.inv_dx) * self.C.grad[dst, p]
-            at_base = self.v.grad[dst, p] - g_C @ fx  # at node o: g_v + g_C (o - fx)
-            d = ti.static(self.dim)
-            g_fx = ti.Vector.zero(float, d)  # d/d fx of sum_o W_o h_o, h_o = v_o . (g_v + g_C (o - fx))
-            new_v = ti.Vector.zero(float, d)
-            for row in ti.static(self.rows):  # row by row (``row_weight``)
-                row_base = self.plus_steps(at_base, g_C, row, 0)
-                along_v = ti.Vector.zero(float, d)
-                along_h, slope_h = 0.0, 0.0
-                for c in ti.static(range(3)):
-                    node_v = source.velocity(g, base + self.row_node(row, c))
-                    h = node_v.dot(self.plus_steps(row_base, g_C, [c], d - 1))
-                    along_v += w[c][d - 1] * node_v
-                    along_h += w[c][d - 1] * h
-                    slope_h += slopes[c][d - 1] * h
-                new_v += self.row_weight(w, row) * along_v
-                g_fx += self.row_gradient(w, slopes, row, along_h, slope_h)
-            g_x = self.inv_dx * g_fx
-            # d dpos / dx = -I / dx: sum_i w_i g_C^T v_i / dx, taken out of the loop
-            self.x.grad[src, p] = self.x.grad[src, p] + g_x - self.inv_dx * (g_C.transpose() @ new_v)
+    @ti.func
+    def _g2p_position_adjoint(self, base, fx, w, v_bar, C_bar, g, source: ti.template()):
+        """Adjoint of a particle's G2P with respect to its position (weights and offsets move with it), from
+        its new velocity's and affine field's adjoints: a gather of the grid velocities (``source``)."""
+        slopes = self.stencil_slopes(fx)
+        g_C = (4.0 * self.inv_dx) * C_bar
+        at_base = v_bar - g_C @ fx  # at node o: g_v + g_C (o - fx)
+        d = ti.static(self.dim)
+        g_fx = ti.Vector.zero(float, d)  # d/d fx of sum_o W_o h_o, h_o = v_o . (g_v + g_C (o - fx))
+        new_v = ti.Vector.zero(float, d)
+        for row in ti.static(self.rows):  # row by row (``row_weight``)
+            row_base = self.plus_steps(at_base, g_C, row, 0)
+            along_v = ti.Vector.zero(float, d)
+            along_h, slope_h = 0.0, 0.0
+            for c in ti.static(range(3)):
+                node_v = source.velocity(g, base + self.row_node(row, c))
+                h = node_v.dot(self.plus_steps(row_base, g_C, [c], d - 1))
+                along_v += w[c][d - 1] * node_v
+                along_h += w[c][d - 1] * h
+                slope_h += slopes[c][d - 1] * h
+            new_v += self.row_weight(w, row) * along_v
+            g_fx += self.row_gradient(w, slopes, row, along_h, slope_h)
+        # d dpos / dx = -I / dx: sum_i w_i g_C^T v_i / dx, taken out of the loop
+        return self.inv_dx * g_fx - self.inv_dx * (g_C.transpose() @ new_v)
 
     @ti.kernel
     def _gathered_grad_to_source(self, g: ti.i32, source: ti.template()):
@@ -198,41 +201,60 @@ class MPMAdjointKernels(MPMKernels):
             self.lame_bar[None] += ti.Vector([mu_bar, lam_bar])
 
     @ti.kernel
-    def _advect_adjoint(
+    def _g2p_adjoint(
         self,
+        scatter: ti.template(),
         mat: ti.template(),
         b: ti.i32,
         start: ti.i32,
         end: ti.i32,
         src: ti.i32,
         dst: ti.i32,
+        g: ti.i32,
+        source: ti.template(),
+        out: ti.template(),
         dt: float,
         material_grads: ti.template(),
     ):
-        """Adjoint of the advection in ``_g2p_advect`` (x' = x + dt v', F' = project((I + dt C') F)): from dL/dx', dL/dF' to
-        dL/dx, dL/dv', dL/dC', dL/dF and the body's dL/dE, dL/dnu (a plastic body's yield limit
-        depends on mu). The first kernel of substep src's adjoint, it starts slot src's particle adjoints
-        (x, F assigned, v and C zeroed; the later kernels add to them), so no fill
-        of every slot precedes the backward (it was 4.5% of a 3D backward)."""
+        """Adjoint of body b's G2P and advection (``_g2p_advect``), particle by particle in one parallel pass:
+        the advection's (``_advect_adjoint_particle``), then the gather's with respect to the position
+        (``_g2p_position_adjoint``), and with the atomic scatter also the gather's with respect to the grid
+        velocities, a scatter onto ``out`` (``_g2p_adjoint_scatter``), all from the particle's registers.
+        The first kernel of substep src's adjoint, it starts slot src's particle adjoints (x, F assigned, v
+        and C zeroed; the later kernels add to them), so no fill of every slot precedes the backward."""
         ti.loop_config(serialize=self.serial_particle_loops)
         for p in range(start, end):  # each particle owns its adjoint entries: plain adds, not atomics
-            mu, lam = self._lame(b)
-            x_bar = self.x.grad[dst, p]
-            self.x.grad[src, p] = x_bar
-            self.v.grad[src, p] = ti.zero(self.v.grad[src, p])
-            self.C.grad[src, p] = ti.zero(self.C.grad[src, p])
-            self.v.grad[dst, p] = self.v.grad[dst, p] + dt * x_bar
-            F = self.F[src, p]
-            step = ti.Matrix.identity(float, self.dim) + dt * self.C[dst, p]
-            trial_bar, mu_bar, lam_bar = mat.project_vjp(step @ F, mu, lam, self.yield_stress[b], self.F.grad[dst, p])
-            self.C.grad[dst, p] = self.C.grad[dst, p] + dt * trial_bar @ F.transpose()
-            self.F.grad[src, p] = step.transpose() @ trial_bar
-            if ti.static(mat.project_uses_lame):  # noqa: SIM102 (compile-time; else a zero added to E and nu by every particle)
-                if ti.static(material_grads):
-                    self.lame_bar[None] += ti.Vector([mu_bar, lam_bar])
+            x_bar, v_bar, C_bar = self._advect_adjoint_particle(mat, b, p, src, dst, dt, material_grads)
+            base, fx, w = self.stencil(self.x[src, p])
+            self.x.grad[src, p] = x_bar + self._g2p_position_adjoint(base, fx, w, v_bar, C_bar, g, source)
+            if ti.static(scatter == "atomic"):
+                self._g2p_adjoint_spread(base, fx, w, v_bar, C_bar, g, out, True)
+            else:  # for the scatter's own launches (serial: one thread; coloured: a launch per colour)
+                self.v.grad[dst, p] = v_bar
+                self.C.grad[dst, p] = C_bar
         if ti.static(mat.project_uses_lame):  # noqa: SIM102 (compile-time tests)
             if ti.static(material_grads):
                 self._lame_grad(b)
+
+    @ti.func
+    def _advect_adjoint_particle(self, mat: ti.template(), b, p, src, dst, dt, material_grads: ti.template()):
+        """Adjoint of particle p's advection (x' = x + dt v', F' = project((I + dt C') F)): from dL/dx', dL/dF'
+        to dL/dF (stored) and the body's dL/dmu, dL/dlam (``lame_bar``; a plastic body's yield limit depends
+        on mu); returns dL/dx and the complete dL/dv', dL/dC'. Zeroes slot src's v and C adjoints."""
+        mu, lam = self._lame(b)
+        x_bar = self.x.grad[dst, p]
+        self.v.grad[src, p] = ti.zero(self.v.grad[src, p])
+        self.C.grad[src, p] = ti.zero(self.C.grad[src, p])
+        F = self.F[src, p]
+        step = ti.Matrix.identity(float, self.dim) + dt * self.C[dst, p]
+        trial_bar, mu_bar, lam_bar = mat.project_vjp(step @ F, mu, lam, self.yield_stress[b], self.F.grad[dst, p])
+        self.F.grad[src, p] = step.transpose() @ trial_bar
+        if ti.static(mat.project_uses_lame):  # noqa: SIM102 (compile-time; else a zero added to E and nu by every particle)
+            if ti.static(material_grads):
+                self.lame_bar[None] += ti.Vector([mu_bar, lam_bar])
+        v_bar = self.v.grad[dst, p] + dt * x_bar
+        C_bar = self.C.grad[dst, p] + dt * trial_bar @ F.transpose()
+        return x_bar, v_bar, C_bar
 
     @ti.func
     def _lame_grad(self, b):
@@ -267,15 +289,16 @@ class MPMAdjointKernels(MPMKernels):
     def _substep_grad(self, s: int, dt: float, control_share: float) -> None:
         """Adjoint of substep s (slots s -> s + 1); its grid and stress copies are still held."""
         self._zero_grid_grad(s)
+        out = self.grid_v.grad if self._grid_out is self else self.gathered_grad  # no grid hook: straight on
         for b in reversed(range(len(self.bodies))):
             lo, hi = self.ranges[b]
-            self._advect_adjoint(self.materials[b], b, lo, hi, s, s + 1, dt, self.material_grads)
-        self._g2p_adjoint_position(s, s + 1, s, self._grid_out)
+            self._g2p_adjoint(self.scatter, self.materials[b], b, lo, hi, s, s + 1, s, self._grid_out, out, dt,
+                              self.material_grads)  # fmt: skip
         if self.scatter == "coloured":
             self.bin_particles(s, 0, self.n_particles)
-        out = self.grid_v.grad if self._grid_out is self else self.gathered_grad  # no grid hook: straight on
         for colour in range(self.colours if self.scatter == "coloured" else 1):
-            self._g2p_adjoint_scatter(self.scatter, s, s + 1, s, out, colour)
+            if self.scatter != "atomic":  # else scattered by ``_g2p_adjoint``
+                self._g2p_adjoint_scatter(self.scatter, s, s + 1, s, out, colour)
         if self._grid_out is not self:
             self._gathered_grad_to_source(s, self._grid_out)
         for hook in reversed(self.grid_hooks):

@@ -91,8 +91,7 @@ class MPMKernels(StencilFunctions, SlotIO, ParticleBins, P2GKernels):
         self.grid_mm = field_pool.vector(self, d + 1, float, shape=(self.n_grids, *self.nodes), needs_grad=grad)
         self.grid_v = field_pool.vector(self, d, float, shape=(self.n_grids, *self.nodes), needs_grad=grad)
         self.gravity = ti.Vector([float(g) for g in config.gravity])
-        # its adjoint never leaves a particle's registers (``MPMAdjointKernels._particle_adjoint``): no field for it
-        self.affine = field_pool.matrix(self, d, d, float, shape=(self.n_grids, n))
+        self.per_particle = (self.n_grids, n)  # the shape of per-substep particle scratch (hooks' momenta)
         # the nodes the P2G of each grid copy's substep touched: [active_lo, active_hi) per axis (``_p2g``)
         self.active_lo = field_pool.vector(self, d, ti.i32, shape=self.n_grids)
         self.active_hi = field_pool.vector(self, d, ti.i32, shape=self.n_grids)
@@ -130,6 +129,13 @@ class MPMKernels(StencilFunctions, SlotIO, ParticleBins, P2GKernels):
             raise ValueError(f"MPMConfig.scatter: {self.scatter!r} is none of {', '.join(SCATTERS)}")
         if self.scatter == "coloured":
             self._init_bins()
+        # a parallel scatter computes each particle's affine momentum as it scatters; the serial one reads
+        # it from ``affine``, which a parallel loop filled. The adjoint reads it back (``mpm_adjoint``), but its
+        # own adjoint never leaves a particle's registers (``_particle_adjoint``): no field for that
+        self.stress_in_scatter = self.scatter != "serial"
+        self.affine = None
+        if grad or not self.stress_in_scatter:
+            self.affine = field_pool.matrix(self, d, d, float, shape=self.per_particle)
         self.bounded_grid = choices.bounded_grid_passes  # else every grid pass covers the whole grid (GPU)
         if not self.bounded_grid:
             self.active_hi.from_numpy(np.tile(np.array(self.nodes, dtype=np.int32), (self.n_grids, 1)))

@@ -1,8 +1,10 @@
 """P2G, the scatter from particles to the grid: ``P2GKernels``, a base of ``MPMKernels``.
 
 One launch per body (per colour with the coloured scatter, ``cosim.engines.mpm_bins``), or a pass of
-the fused forward substep (``MPMKernels._substep_fused``), holds three loops: the clear of the grid box the last substep wrote, the body's stress (its affine momentum), and
-the scatter, which also bounds the box the next grid passes cover. Its functions read the engine's
+the fused forward substep (``MPMKernels._substep_fused``), holds up to three loops: the clear of the grid
+box the last substep wrote, the body's stress (its affine momentum: its own parallel loop beside the serial
+scatter, else computed by the scatter particle by particle, ``stress_in_scatter``), and the scatter, which
+also bounds the box the next grid passes cover. Its functions read the engine's
 fields (``x``, ``v``, ``C``, ``F``, ``affine``, ``grid_mm``, ``grid_v``, ``active_lo`` / ``active_hi``),
 settings (``dim``, ``dx``, ``nodes``, ``box_margin``, ``bounded_grid``, the loop flags) and hooks.
 """
@@ -41,15 +43,35 @@ class P2GKernels:
                 fld[g, I] = ti.zero(fld[g, I])
 
     @ti.func
+    def _affine_momentum(self, mat: ti.template(), b, p, src, dt):
+        """Particle p's affine momentum (body b, slot src): its stress term -dt V0 4 / dx^2 tau(F, C) plus
+        APIC's m_p C [kg/s]; node o receives it times (o - fx) dx in P2G."""
+        mu, lam = self._lame(b)
+        m_p, vol = self.p_mass[b], self.p_vol[b]
+        tau = mat.kirchhoff(self.F[src, p], self.C[src, p], mu, lam, self.viscosity[b])
+        return (-dt * vol * 4.0 * self.inv_dx * self.inv_dx) * tau + m_p * self.C[src, p]
+
+    @ti.func
     def _stress(self, mat: ti.template(), b, start, end, src, g, dt):
-        """Affine momentum per particle: stress term plus APIC m C (parallel unless the engine is small:
-        ``arch``; its own loop of ``_p2g``'s kernel)."""
+        """Affine momenta of particles [start, end) into ``affine`` (parallel unless the engine is small:
+        ``arch``; its own loop of ``_p2g``'s kernel) when the scatter does not compute them itself
+        (``stress_in_scatter``)."""
         ti.loop_config(serialize=self.serial_particle_loops)
         for p in range(start, end):
-            mu, lam = self._lame(b)
-            m_p, vol = self.p_mass[b], self.p_vol[b]
-            tau = mat.kirchhoff(self.F[src, p], self.C[src, p], mu, lam, self.viscosity[b])
-            self.affine[g, p] = (-dt * vol * 4.0 * self.inv_dx * self.inv_dx) * tau + m_p * self.C[src, p]
+            self.affine[g, p] = self._affine_momentum(mat, b, p, src, dt)
+
+    @ti.func
+    def _scattered_affine(self, mat: ti.template(), b, p, src, g, dt):
+        """The affine momentum P2G scatters for particle p: computed here when the scatter is parallel
+        (``stress_in_scatter``; stored for the adjoint only with gradients), else what ``_stress`` stored."""
+        affine = ti.Matrix.zero(float, self.dim, self.dim)
+        if ti.static(self.stress_in_scatter):
+            affine = self._affine_momentum(mat, b, p, src, dt)
+            if ti.static(self.cfg.requires_grad):
+                self.affine[g, p] = affine
+        else:
+            affine = self.affine[g, p]
+        return affine
 
     @ti.func
     def particle_momentum(self, src, g, p, m_p, control_share):
@@ -63,12 +85,12 @@ class P2GKernels:
         return mom
 
     @ti.func
-    def _p2g_particle(self, b, p, src, g, control_share, atomic: ti.template()):
+    def _p2g_particle(self, mat: ti.template(), b, p, src, g, dt, control_share, atomic: ti.template()):
         """Scatter particle p's mass and momentum onto its stencil (of body b); returns its base node."""
         m_p = self.p_mass[b]
         base, fx, w = self.stencil(self.x[src, p])
         # node o receives weight * (mom + affine @ (o - fx) dx) = weight * (at_base + sum_k o_k steps[:, k])
-        steps = self.affine[g, p] * self.dx
+        steps = self._scattered_affine(mat, b, p, src, g, dt) * self.dx
         at_base = self.particle_momentum(src, g, p, m_p, control_share) - steps @ fx
         for offset in ti.static(ti.grouped(ti.ndrange(*([3] * self.dim)))):
             mom = self.plus_steps(at_base, steps, offset, 0)
@@ -121,10 +143,13 @@ class P2GKernels:
         block's particles in index order on one thread with plain adds (a launch per colour: one compiled
         copy, not 2^d); "atomic", every particle in parallel with atomic adds. The adjoint is a gather.
         One launch a body (a colour) for what were three: first the clear of the last box (``clear``: the
-        first body's first launch) and the body's stress (``stress``: its first launch), each its own loop;
-        inlined in a kernel (``_p2g``, the fused substep), each loop is one of its parallel tasks."""
+        first body's first launch) and, beside the serial scatter, the body's stress (``stress``: its first
+        launch), each its own loop; inlined in a kernel (``_p2g``, the fused substep), each loop is one of its
+        parallel tasks. A parallel scatter computes each particle's stress itself (``stress_in_scatter``):
+        no affine field written and read back, 2 d^2 floats a particle less memory traffic."""
         self._clear_box(g, clear)
-        self._stress(mat, b, start, start + stress * (end - start), src, g, dt)
+        if ti.static(not self.stress_in_scatter):
+            self._stress(mat, b, start, start + stress * (end - start), src, g, dt)
         margin = ti.static(self.box_margin)
         bounded = ti.static(self.bounded_grid)  # else the box stays the whole grid (``arch``)
         if ti.static(bounded):  # noqa: SIM102 (a compile-time test: Taichi cannot join it with a run-time one)
@@ -141,11 +166,11 @@ class P2GKernels:
                     blk = self.colour_blocks[colour, j // self.spread]
                     first = self.block_start[blk]
                     for k in range(first, first + self.block_count[blk]):
-                        self._p2g_particle(b, self.bin_order[k], src, g, control_share, False)
+                        self._p2g_particle(mat, b, self.bin_order[k], src, g, dt, control_share, False)
         else:
             ti.loop_config(serialize=scatter == "serial")
             for p in range(start, end):
-                base = self._p2g_particle(b, p, src, g, control_share, scatter == "atomic")
+                base = self._p2g_particle(mat, b, p, src, g, dt, control_share, scatter == "atomic")
                 if ti.static(bounded):
                     ti.atomic_min(self.active_lo[g], base - margin)
                     ti.atomic_max(self.active_hi[g], base + 3 + margin)
