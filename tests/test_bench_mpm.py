@@ -83,3 +83,23 @@ def test_a_peer_is_named_and_found_or_refused_with_the_fix(tmp_path):
     assert peer.env["PYTHONPATH"].split(":")[0] == str(tmp_path) and peer.measure == MEASURE_SOFTMAC
     with pytest.raises(InputError, match="--peer compares its own sizes"):
         check_mode(False, None, False, "cpu", None, None, 30000, f"softmac={tmp_path}")
+
+
+def test_a_baseline_comparison_keeps_each_thread_count_and_scatter_apart():
+    """Runs of the same sizes with different --threads / --scatter are medians of their own, each
+    version's against the other's of the same setting: median fwd rates 2 / 4 and 3 / 9 over the runs."""
+    from cosim.bench.mpm_baseline import MEASURES, medians, setting
+
+    sizes = {"dim": 3, "precision": "float32", "grid": "64^3", "particles": 29791}
+    runs = []
+    for cfg, base_fwd, cur_fwd in [({"threads": 2, "scatter": "atomic"}, [1, 2, 5], [4, 4, 3]),
+                                   ({"scatter": "coloured"}, [3, 3, 1], [9, 8, 10])]:  # fmt: skip
+        for version, rates in (("baseline", base_fwd), ("current", cur_fwd)):
+            for rate in rates:
+                runs.append({**sizes, "version": version, "setting": setting(cfg)} | dict.fromkeys(MEASURES, 1.0)
+                            | {"fwd_Mpss": float(rate)})  # fmt: skip
+    rows = {r["setting"]: r for r in medians(runs, "baseline")}
+    assert sorted(rows) == ["2 threads, atomic", "coloured"]
+    assert rows["2 threads, atomic"]["ratio_fwd_Mpss"] == 4 / 2
+    assert rows["coloured"]["ratio_fwd_Mpss"] == 9 / 3
+    assert setting({"dim": 3}) == "default"

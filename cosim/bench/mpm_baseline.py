@@ -39,6 +39,7 @@ def table(short: str) -> list[tuple[str, str, str]]:
     """The printed columns: the reference's (``ref_``, headed ``short``), the current's and their ratios."""
     return [
         *CONFIG_COLUMNS,
+        ("setting", "setting", ">18"),
         ("ref_fwd_Mpss", f"fwd {short}", ">8.2f"),
         ("cur_fwd_Mpss", "fwd cur", ">8.2f"),
         ("ratio_fwd_Mpss", "ratio", ">6.2f"),
@@ -84,11 +85,20 @@ def interleaved_runs(configs: list[dict], interps: list[Interpreter], repeat: in
     for i in range(repeat):
         for cfg in configs:
             for interp in interps if i % 2 == 0 else interps[::-1]:
-                row = {"version": interp.label, "repeat": i, **run_config(cfg, interp)}
+                row = {"version": interp.label, "repeat": i, **run_config(cfg, interp), "setting": setting(cfg)}
                 runs.append(row)
                 print(f"  {i + 1}/{repeat} {interp.label:>8} {row['dim']}D {row['precision']} {row['grid']}: "
                       f"fwd {row['fwd_Mpss']:.2f}, f+b {row['fwd_bwd_Mpss']:.3f} M/s", flush=True)  # fmt: skip
     return runs
+
+
+def setting(cfg: dict) -> str:
+    """The CPU threads and scatter a configuration asks for (``--threads``, ``--scatter``), e.g.
+    "2 threads, atomic", or "default": what its runs are grouped by besides the sizes (both versions
+    run it so, whatever either reports)."""
+    asked = [f"{cfg['threads']} threads"] if "threads" in cfg else []
+    asked += [cfg["scatter"]] if "scatter" in cfg else []
+    return ", ".join(asked) or "default"
 
 
 def medians(runs: list[dict], reference: str) -> list[dict]:
@@ -96,8 +106,9 @@ def medians(runs: list[dict], reference: str) -> list[dict]:
     (``reference``: the other version's label)."""
     rows = {}
     for r in runs:
-        key = (r["dim"], r["precision"], r["grid"], r["particles"])
-        row = rows.setdefault(key, dict(zip(["dim", "precision", "grid", "particles"], key, strict=True)))
+        names = ["dim", "precision", "grid", "particles", "setting"]
+        key = tuple(r[k] for k in names)
+        row = rows.setdefault(key, dict(zip(names, key, strict=True)))
         row.setdefault(r["version"], []).append(r)
     for row in rows.values():
         ref, cur = row.pop(reference), row.pop("current")

@@ -67,8 +67,6 @@ def check_mode(
         raise InputError("--profile runs alone (3D 64³ float32 on the CPU); leave out the other mpm flags")
     if threads and arch != "cpu":
         raise InputError(f"--threads sets CPU threads; --arch {arch} has none to set: leave one out")
-    if baseline is not None and (threads or scatters):
-        raise InputError("--baseline compares the default settings; leave out --threads and --scatter")
     if sizes and particles:
         raise InputError("--sizes and --particles both choose the sizes: give one")
     unknown = sorted(set(scatters or ()) - set(SCATTERS))
