@@ -207,6 +207,13 @@ class RigidBoundaries:
             out["mass"] = self.added.mass(self.engagement.engine._slot, K)
         return out
 
+    @ti.kernel
+    def _zero_adjoints(self):
+        """Zero the adjoints of the boundary states and reactions: one launch, not a fill per field."""
+        for fld in ti.static((self.pos, self.rot, self.vel, self.omega, self.impulse, self.angular_impulse)):
+            for I in ti.grouped(fld.grad):
+                fld.grad[I] = ti.zero(fld.grad[I])
+
     @ti.func
     def handover(self, s, x, p):
         """[m/s] The velocity change the material at x (particle p) gets from the bodies at substep s
@@ -214,8 +221,7 @@ class RigidBoundaries:
         return self.added.handover(s, x, p)
 
     def zero_grad(self) -> None:
-        for fld in (self.pos, self.rot, self.vel, self.omega, self.impulse, self.angular_impulse):
-            fld.grad.fill(0)
+        self._zero_adjoints()
         if self.added is not None:
             self.added.zero_grad()
 

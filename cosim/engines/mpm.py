@@ -294,11 +294,13 @@ class MPMEngine(MPMAdjointKernels):
         for s in reversed(range(K)):
             self._substep_grad(s, dt, share)
         self._resident = -1
+        moduli = np.zeros((len(self.bodies), 2), dtype=self.real)
+        self._read_moduli_grads(moduli)  # dL/dE and dL/dnu in one read
         out = {
             "state": self.checkpoints.read(self._adjoint_fields(), 0),  # on the device while it fits
             "boundaries": {name: source.state_grads(K) for name, source in self.boundaries.items()},
-            "E": self.E.grad.to_numpy().astype(np.float64),
-            "nu": self.nu.grad.to_numpy().astype(np.float64),
+            "E": moduli[:, 0].astype(np.float64),
+            "nu": moduli[:, 1].astype(np.float64),
         }
         if self.control is not None:
             out["impulse"] = self.control.grad.to_numpy()[: self.n_particles].astype(np.float64)
@@ -322,10 +324,10 @@ class MPMEngine(MPMAdjointKernels):
 
     def _zero_grad(self) -> None:
         # the particle adjoints of each slot are started by its substep's ``_g2p_adjoint``, the grids' by
-        # ``_zero_grid_grad``: only what every substep adds to is zeroed here
-        fields = [self.E, self.nu]
-        for fld in fields + ([self.control] if self.control is not None else []):
-            fld.grad.fill(0)
+        # its ``_zero_grid_grad``: only what every substep adds to is zeroed here
+        self._zero_moduli_grads()
+        if self.control is not None:
+            self.control.grad.fill(0)
         for hook in self.grid_hooks + self.particle_hooks:
             hook.zero_grad()
         for source in self.boundaries.values():

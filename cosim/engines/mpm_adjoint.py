@@ -128,13 +128,23 @@ class MPMAdjointKernels(MPMKernels):
 
     @ti.kernel
     def _g2p_adjoint_scatter(
-        self, scatter: ti.template(), src: ti.i32, dst: ti.i32, g: ti.i32, out: ti.template(), colour: ti.i32
+        self,
+        scatter: ti.template(),
+        src: ti.i32,
+        dst: ti.i32,
+        g: ti.i32,
+        out: ti.template(),
+        colour: ti.i32,
+        source: ti.template(),
+        hand_over: ti.template(),
     ):
-        """Adjoint of G2P (``_g2p_advect``) with respect to the velocities it gathered: scatter the new velocity's and
-        affine field's adjoints onto ``out``: the grid velocity's adjoint (copy g) when G2P read the engine's
-        own grid, else ``gathered_grad`` (``_gathered_grad_to_source`` hands it to the last grid hook).
-        ``scatter`` as in ``_p2g`` (the coloured one over ``bin_particles``' lists of slot src)."""
-        if ti.static(scatter == "coloured"):  # colour ``colour``'s blocks
+        """Adjoint of G2P (``_g2p_advect``) with respect to the velocities it gathered, where the scatter is not
+        atomic (``_g2p_adjoint`` scatters then): scatter the new velocity's and affine field's adjoints onto
+        ``out``: the grid velocity's adjoint (copy g) when G2P read the engine's own grid, else
+        ``gathered_grad``, which the last launch (``hand_over``) hands to the last grid hook (``source``,
+        ``_hand_over``). ``scatter`` as in ``_p2g``: "serial", one thread; "coloured", colour ``colour``'s
+        blocks (``bin_particles``' lists of slot src)."""
+        if ti.static(scatter == "coloured"):
             for j in range(self.colour_count[colour] * self.spread):  # a block per task (``mpm_bins.SPREAD``)
                 if j % self.spread == 0:
                     blk = self.colour_blocks[colour, j // self.spread]
@@ -142,9 +152,11 @@ class MPMAdjointKernels(MPMKernels):
                     for k in range(first, first + self.block_count[blk]):
                         self._g2p_adjoint_particle(self.bin_order[k], src, dst, g, out, False)
         else:
-            ti.loop_config(serialize=scatter == "serial")
+            ti.loop_config(serialize=True)
             for p in range(self.count[None]):
-                self._g2p_adjoint_particle(p, src, dst, g, out, scatter == "atomic")
+                self._g2p_adjoint_particle(p, src, dst, g, out, False)
+        if ti.static(hand_over):
+            self._hand_over(g, source)
 
     @ti.func
     def _g2p_position_adjoint(self, base, fx, w, v_bar, C_bar, g, source: ti.template()):
@@ -171,13 +183,13 @@ class MPMAdjointKernels(MPMKernels):
         # d dpos / dx = -I / dx: sum_i w_i g_C^T v_i / dx, taken out of the loop
         return self.inv_dx * g_fx - self.inv_dx * (g_C.transpose() @ new_v)
 
-    @ti.kernel
-    def _gathered_grad_to_source(self, g: ti.i32, source: ti.template()):
+    @ti.func
+    def _hand_over(self, g, source: ti.template()):
         """Hand the adjoint of the gathered velocities to their source (``velocity_grad``: the
         engine's grid velocity or the last grid hook, which passes it upstream) and clear it.
-        A grid pass of its own: inside the G2P adjoint's stencil loop, the hooks' adjoint chain
-        compiles far longer in 3D than this pass does. Over grid copy g's box: the G2P adjoint
-        wrote nothing outside it."""
+        A grid pass of its own after the scatter (the last loop of its last launch): inside the G2P
+        adjoint's stencil loop, the hooks' adjoint chain compiles far longer in 3D than this pass
+        does. Over grid copy g's box: the G2P adjoint wrote nothing outside it."""
         ti.loop_config(serialize=self.serial_grid_loops)
         for I in ti.grouped(
             ti.ndrange(*[(self.active_lo[g][k], self.active_hi[g][k]) for k in ti.static(range(self.dim))])
@@ -215,13 +227,20 @@ class MPMAdjointKernels(MPMKernels):
         out: ti.template(),
         dt: float,
         material_grads: ti.template(),
+        first: ti.template(),
+        hand_over: ti.template(),
     ):
         """Adjoint of body b's G2P and advection (``_g2p_advect``), particle by particle in one parallel pass:
         the advection's (``_advect_adjoint_particle``), then the gather's with respect to the position
         (``_g2p_position_adjoint``), and with the atomic scatter also the gather's with respect to the grid
         velocities, a scatter onto ``out`` (``_g2p_adjoint_scatter``), all from the particle's registers.
         The first kernel of substep src's adjoint, it starts slot src's particle adjoints (x, F assigned, v
-        and C zeroed; the later kernels add to them), so no fill of every slot precedes the backward."""
+        and C zeroed; the later kernels add to them), so no fill of every slot precedes the backward. The
+        substep's ``first`` launch begins with zeroing its grid copy's adjoints (``_zero_grid_grad``); with the
+        atomic scatter and a grid hook, its last ends with handing the scatter's sums to the hook
+        (``hand_over``, ``_hand_over``)."""
+        if ti.static(first):
+            self._zero_grid_grad(g)
         ti.loop_config(serialize=self.serial_particle_loops)
         for p in range(start, end):  # each particle owns its adjoint entries: plain adds, not atomics
             x_bar, v_bar, C_bar = self._advect_adjoint_particle(mat, b, p, src, dst, dt, material_grads)
@@ -235,6 +254,8 @@ class MPMAdjointKernels(MPMKernels):
         if ti.static(mat.project_uses_lame):  # noqa: SIM102 (compile-time tests)
             if ti.static(material_grads):
                 self._lame_grad(b)
+        if ti.static(hand_over):
+            self._hand_over(g, source)
 
     @ti.func
     def _advect_adjoint_particle(self, mat: ti.template(), b, p, src, dst, dt, material_grads: ti.template()):
@@ -273,10 +294,26 @@ class MPMAdjointKernels(MPMKernels):
             self.lame_bar[None] = ti.Vector.zero(float, 2)
 
     @ti.kernel
-    def _zero_grid_grad(self, g: ti.i32):
+    def _read_moduli_grads(self, out: ti.types.ndarray()):
+        """dL/dE and dL/dnu of every body into ``out`` (bodies, 2): one launch and one copy, not two."""
+        ti.loop_config(serialize=True)  # a few bodies (``arch``)
+        for b in range(ti.static(len(self.bodies))):
+            out[b, 0] = self.E.grad[b]
+            out[b, 1] = self.nu.grad[b]
+
+    @ti.kernel
+    def _zero_moduli_grads(self):
+        """Zero dL/dE and dL/dnu, which every substep's adjoint adds to, before a macro step's adjoint."""
+        ti.loop_config(serialize=True)
+        for b in range(ti.static(len(self.bodies))):
+            self.E.grad[b] = 0.0
+            self.nu.grad[b] = 0.0
+
+    @ti.func
+    def _zero_grid_grad(self, g):
         """Zero grid copy g's adjoints, and its grid hooks' (``grid_adjoints``), over its box (``_clear_box``):
-        only its nodes are read and
-        written by its substep's adjoint, so no fill of all K grids."""
+        only its nodes are read and written by its substep's adjoint, so no fill of all K grids. The first loop
+        of its substep's first adjoint launch (``_g2p_adjoint``)."""
         ti.loop_config(serialize=self.serial_grid_loops)
         for I in ti.grouped(
             ti.ndrange(*[(self.active_lo[g][k], self.active_hi[g][k]) for k in ti.static(range(self.dim))])
@@ -288,19 +325,21 @@ class MPMAdjointKernels(MPMKernels):
 
     def _substep_grad(self, s: int, dt: float, control_share: float) -> None:
         """Adjoint of substep s (slots s -> s + 1); its grid and stress copies are still held."""
-        self._zero_grid_grad(s)
-        out = self.grid_v.grad if self._grid_out is self else self.gathered_grad  # no grid hook: straight on
+        hooked = self._grid_out is not self
+        out = self.gathered_grad if hooked else self.grid_v.grad  # no grid hook: straight on
+        atomic = self.scatter == "atomic"  # then ``_g2p_adjoint`` scatters, and its last launch hands over
+        last = len(self.bodies) - 1
         for b in reversed(range(len(self.bodies))):
             lo, hi = self.ranges[b]
             self._g2p_adjoint(self.scatter, self.materials[b], b, lo, hi, s, s + 1, s, self._grid_out, out, dt,
-                              self.material_grads)  # fmt: skip
-        if self.scatter == "coloured":
-            self.bin_particles(s, 0, self.n_particles)
-        for colour in range(self.colours if self.scatter == "coloured" else 1):
-            if self.scatter != "atomic":  # else scattered by ``_g2p_adjoint``
-                self._g2p_adjoint_scatter(self.scatter, s, s + 1, s, out, colour)
-        if self._grid_out is not self:
-            self._gathered_grad_to_source(s, self._grid_out)
+                              self.material_grads, b == last, atomic and hooked and b == 0)  # fmt: skip
+        if not atomic:
+            if self.scatter == "coloured":
+                self.bin_particles(s, 0, self.n_particles)
+            colours = self.colours if self.scatter == "coloured" else 1
+            for colour in range(colours):
+                self._g2p_adjoint_scatter(self.scatter, s, s + 1, s, out, colour, self._grid_out,
+                                          hooked and colour == colours - 1)  # fmt: skip
         for hook in reversed(self.grid_hooks):
             hook.apply_grad(s, s, s, dt)
         self._grid_update.grad(s, dt, self._mass_floor())
