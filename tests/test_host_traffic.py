@@ -40,6 +40,44 @@ def test_a_macro_step_hands_the_device_the_same_few_host_arrays_whatever_its_sub
     assert per_step[16]["launches"] - per_step[8]["launches"] == 8, per_step
 
 
+def test_a_backward_substep_is_seven_launches_with_no_host_array():
+    """shake_container_2d's gradient over 3 macro steps at 6 and at 12 substeps a frame: the backward's host
+    arrays are the same, and each substep more adds 7 launches to each step's adjoint (the G2P adjoint,
+    opening with the grid adjoints' zeroing; the scatter, closing with the hand-over to the grid hook; the
+    hook's three adjoints; the grid update's; the P2G and stress adjoint) and 1 to each step's recompute
+    but the last step's, whose forward is still resident: 3 * 7 + 2 = 23 per extra substep."""
+    from cosim.adjoint.tape import Tape
+
+    original = kernel_impl.Kernel.__call__
+    counts = {}
+    for substeps in (6, 12):
+        scene = load_scene(
+            SCENES / "shake_container_2d.yaml", {"precision": "float64", "steps": 3}, [f"time.substeps={substeps}"]
+        )
+        sim = build_system(scene, requires_grad=True)
+        start = sim.state()
+        seed = {engine: {k: np.ones_like(v) for k, v in s.items()} for engine, s in start.items()}
+        for run in range(2):  # the first compiles
+            sim.set_state(start)
+            tape = Tape()
+            sim.rollout(tape=tape)
+            tally = {"launches": 0, "arrays": 0}
+
+            def counted(self, *args, tally=tally, **kwargs):
+                tally["launches"] += 1
+                tally["arrays"] += sum(isinstance(a, np.ndarray) for a in args)
+                return original(self, *args, **kwargs)
+
+            kernel_impl.Kernel.__call__ = counted
+            try:
+                tape.backward(sim.vjp, seed)
+            finally:
+                kernel_impl.Kernel.__call__ = original
+        counts[substeps] = tally
+    assert counts[12]["arrays"] == counts[6]["arrays"], counts
+    assert counts[12]["launches"] - counts[6]["launches"] == 6 * 23, counts
+
+
 def rotated_wall_scene(angle: float):
     """A 0.2 m long, one-cell thin wall at (0.6, 0.5) turned by ``angle`` [rad] from upright, a small block."""
     wall = {"name": "wall", "shape": {"type": "box", "size": [1 / 64, 0.2]}, "position": [0.6, 0.5], "rotation": angle}
