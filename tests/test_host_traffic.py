@@ -2,6 +2,8 @@
 (on a GPU every host array a kernel takes is a copy and a wait), packed side by side (boundary states in,
 reactions out, the tunnelling check's poses) and unpacked on the device where they belong."""
 
+from contextlib import contextmanager
+
 import numpy as np
 from conftest import SCENES, make_scene
 from taichi.lang import kernel_impl
@@ -10,11 +12,29 @@ from cosim.scene import load_scene
 from cosim.scene.build import build_system
 
 
+@contextmanager
+def counting_launches():
+    """Counts Taichi kernel launches and the host (numpy) arrays handed to them while inside:
+    yields {"launches": n, "arrays": m}."""
+    original = kernel_impl.Kernel.__call__
+    tally = {"launches": 0, "arrays": 0}
+
+    def counted(self, *args, **kwargs):
+        tally["launches"] += 1
+        tally["arrays"] += sum(isinstance(a, np.ndarray) for a in args)
+        return original(self, *args, **kwargs)
+
+    kernel_impl.Kernel.__call__ = counted
+    try:
+        yield tally
+    finally:
+        kernel_impl.Kernel.__call__ = original
+
+
 def test_a_macro_step_hands_the_device_the_same_few_host_arrays_whatever_its_substeps():
     """shake_container_2d at 8 and at 16 fixed substeps a frame: the same host arrays a step (boundary
     states, reactions, survey, energies, the tunnelling check's poses and counts), and 8 launches more,
     one per extra substep, none of which takes a host array."""
-    original = kernel_impl.Kernel.__call__
     per_step = {}
     for substeps in (8, 16):
         scene = load_scene(
@@ -22,19 +42,9 @@ def test_a_macro_step_hands_the_device_the_same_few_host_arrays_whatever_its_sub
         )
         sim = build_system(scene)
         sim.step()  # compiles
-        tally = {"launches": 0, "arrays": 0}
-
-        def counted(self, *args, tally=tally, **kwargs):
-            tally["launches"] += 1
-            tally["arrays"] += sum(isinstance(a, np.ndarray) for a in args)
-            return original(self, *args, **kwargs)
-
-        kernel_impl.Kernel.__call__ = counted
-        try:
+        with counting_launches() as tally:
             for _ in range(4):
                 sim.step()
-        finally:
-            kernel_impl.Kernel.__call__ = original
         per_step[substeps] = {key: count / 4 for key, count in tally.items()}
     assert per_step[16]["arrays"] == per_step[8]["arrays"] <= 6, per_step
     assert per_step[16]["launches"] - per_step[8]["launches"] == 8, per_step
@@ -48,7 +58,6 @@ def test_a_backward_substep_is_seven_launches_with_no_host_array():
     but the last step's, whose forward is still resident: 3 * 7 + 2 = 23 per extra substep."""
     from cosim.adjoint.tape import Tape
 
-    original = kernel_impl.Kernel.__call__
     counts = {}
     for substeps in (6, 12):
         scene = load_scene(
@@ -57,22 +66,12 @@ def test_a_backward_substep_is_seven_launches_with_no_host_array():
         sim = build_system(scene, requires_grad=True)
         start = sim.state()
         seed = {engine: {k: np.ones_like(v) for k, v in s.items()} for engine, s in start.items()}
-        for run in range(2):  # the first compiles
+        for _ in range(2):  # the first compiles
             sim.set_state(start)
             tape = Tape()
             sim.rollout(tape=tape)
-            tally = {"launches": 0, "arrays": 0}
-
-            def counted(self, *args, tally=tally, **kwargs):
-                tally["launches"] += 1
-                tally["arrays"] += sum(isinstance(a, np.ndarray) for a in args)
-                return original(self, *args, **kwargs)
-
-            kernel_impl.Kernel.__call__ = counted
-            try:
+            with counting_launches() as tally:
                 tape.backward(sim.vjp, seed)
-            finally:
-                kernel_impl.Kernel.__call__ = original
         counts[substeps] = tally
     assert counts[12]["arrays"] == counts[6]["arrays"], counts
     assert counts[12]["launches"] - counts[6]["launches"] == 6 * 23, counts
