@@ -126,6 +126,23 @@ def test_particles_leaving_the_grid_stop_the_run_with_their_count():
     assert sim.mpm.max_speed() == np.abs(v).max()
 
 
+def test_survey_chunks_tile_every_body_in_enough_short_chunks_and_a_bounded_table():
+    """The survey's and energy sums' chunks (one thread's serial loop each, a row of the host's table)
+    cover each body's particles once, in order; a small engine gets chunks of ``MIN_CHUNK`` (1,485 particles:
+    93 threads, not 2 of 1,024), a large one at most ``MAX_CHUNKS`` rows (2M particles: 4,096 + a last
+    partial chunk per body)."""
+    from cosim.engines.mpm_watch import MAX_CHUNKS, MIN_CHUNK, body_chunks
+
+    for ranges in ([(0, 1485)], [(0, 10), (10, 5000), (5000, 5001)], [(0, 1_000_000), (1_000_000, 2_000_000)]):
+        chunks = body_chunks(ranges)
+        for b, (lo, hi) in enumerate(ranges):
+            rows = chunks[chunks[:, 2] == b]
+            assert rows[0, 0] == lo and rows[-1, 1] == hi and np.array_equal(rows[1:, 0], rows[:-1, 1])
+        assert len(chunks) <= MAX_CHUNKS + len(ranges)
+        assert (chunks[:, 1] - chunks[:, 0]).max() == max(MIN_CHUNK, -(-ranges[-1][1] // MAX_CHUNKS))
+    assert len(body_chunks([(0, 1485)])) == 93
+
+
 def test_a_step_redone_after_a_cfl_violation_restarts_from_its_state():
     """A block at 4 m/s gets two substeps of 1 ms (CFL bound: (4 + 1.64 + 0.02) m/s * 2 ms / (0.3 dx) = 1.2)
     but a control impulse the count does not foresee takes it to 14 m/s: CFL 14 * 1e-3 * 32 = 0.45 > 0.3,

@@ -24,13 +24,26 @@ from cosim.engines.data_oriented import data_oriented
 
 KEYS = ("x", "v", "C", "F")  # the particle state's keys, as the survey counts them
 NONE = 2**30  # the first bad substep of a body with none
-CHUNK = 1024  # particles per survey chunk (chunks run in parallel, each serially)
+# A chunk is one thread's serial loop, its result a row of the table the host reads. Few long chunks
+# leave a GPU's threads idle, each waiting on its own loads (1,485 particles were two threads of 1,024
+# iterations); many short ones make a long table. So: MIN_CHUNK particles a chunk, longer from
+# MIN_CHUNK * MAX_CHUNKS particles on so that there are MAX_CHUNKS chunks, and never more than CHUNK.
+MIN_CHUNK = 16
+MAX_CHUNKS = 4096
+CHUNK = 1024
+
+
+def chunk_length(particles: int) -> int:
+    """Particles per chunk for an engine of ``particles`` (``MIN_CHUNK``, ``MAX_CHUNKS``, ``CHUNK``)."""
+    return int(min(CHUNK, max(MIN_CHUNK, -(-particles // MAX_CHUNKS))))
 
 
 def body_chunks(ranges: list[tuple[int, int]]) -> np.ndarray:
-    """(chunks, 3) int32 rows (start, end, body): each body's particle range [lo, hi) cut into ``CHUNK``s,
-    which a per-chunk reduction sums serially and in parallel with the others (no atomics)."""
-    chunks = [(p, min(p + CHUNK, hi), b) for b, (lo, hi) in enumerate(ranges) for p in range(lo, hi, CHUNK)]
+    """(chunks, 3) int32 rows (start, end, body): each body's particle range [lo, hi) cut into chunks of
+    ``chunk_length`` of all the particles, which a per-chunk reduction sums serially and in parallel with
+    the others (no atomics: the sums' order is fixed by the particles alone)."""
+    size = chunk_length(sum(hi - lo for lo, hi in ranges))
+    chunks = [(p, min(p + size, hi), b) for b, (lo, hi) in enumerate(ranges) for p in range(lo, hi, size)]
     return np.array(chunks, dtype=np.int32).reshape(-1, 3)
 
 
