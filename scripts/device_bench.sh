@@ -17,6 +17,8 @@
 # `echo /.peers/ >> .git/info/exclude`; only its softmac/engine/ is needed). The script installs the
 # wheels into /tmp/site, then runs these steps, each writing its report and CSV under $OUT:
 #   gpu      `cosim bench mpm --arch cuda`: 30k, 250k and 2M particles on the GPU;
+#   profile  `cosim bench mpm --arch cuda --profile`: Taichi's kernel profiler over the 2M block, each kernel
+#            and each of its parallel loops (what bounds the 2M forward and its backward);
 #   contact  `cosim bench contact --arch cuda --repeat 1` (the paper's contact benchmark: 1100 frames, every
 #            model and wall, the steps after the first timed), then `cosim run scenes/shake_container_2d.yaml
 #            --arch cuda` twice (grid contact; run 2 loads run 1's kernels from the cache): wall_time_s, first_step_s;
@@ -24,9 +26,9 @@
 #            on the 30k block in float64, interleaved (SoftMAC's first 3D backward compiles for minutes);
 #   threads  `cosim bench mpm --particles 1000000 --threads 1,2,4,8,16 --scatter serial,coloured --quick`:
 #            the many-core curve at 1M particles on the machine's CPU cores.
-# Steps run in the order given after the optional `quick` (default: gpu contact peer threads), each command
+# Steps run in the order given after the optional `quick` (default: gpu profile contact peer threads), each command
 # under `timeout ${STEP_S:-280}` so that one slow step cannot take a call's 600 s: with 15 minutes of device
-# time, run `gpu contact` in one call and `peer threads` in a second if one call cannot hold all four.
+# time, run `gpu profile contact` in one call and `peer threads` in a second if one call cannot hold all.
 # `quick` runs the GPU's 30k block only, 100 contact frames and the curve at 100k particles (a rehearsal on
 # any machine: pass ARCH=cpu to run the GPU step on the CPU). dartpy is not installed there: MPM-only.
 set -uo pipefail
@@ -34,7 +36,7 @@ out="${OUT:-out/device}"
 arch="${ARCH:-cuda}"
 quick=""
 if [ "${1:-}" = quick ]; then quick=quick; shift; fi
-steps="${*:-gpu contact peer threads}"
+steps="${*:-gpu profile contact peer threads}"
 site=/tmp/site
 mkdir -p "$out"
 if [ -d .whl ] && [ ! -d "$site/taichi" ]; then
@@ -51,6 +53,9 @@ for step in $steps; do
     case "$step" in
     gpu)
         if q; then cosim bench mpm --arch "$arch" --quick --out "$out/gpu"; else cosim bench mpm --arch "$arch" --out "$out/gpu"; fi ;;
+    profile)
+        if q; then cosim bench mpm --arch "$arch" --profile --quick --out "$out/profile"
+        else cosim bench mpm --arch "$arch" --profile --out "$out/profile"; fi ;;
     contact)  # the paper's contact benchmark, then its grid run twice: run 2 loads run 1's kernels from the cache
         frames=1100
         if q; then frames=100; fi
@@ -70,6 +75,6 @@ for step in $steps; do
     threads)
         if q; then cosim bench mpm --particles 100000 --threads 1,2 --scatter serial,coloured --quick --out "$out/threads"
         else cosim bench mpm --particles 1000000 --threads 1,2,4,8,16 --scatter serial,coloured --quick --out "$out/threads"; fi ;;
-    *) echo "unknown step $step (gpu, contact, peer, threads)" ;;
+    *) echo "unknown step $step (gpu, profile, contact, peer, threads)" ;;
     esac || echo "step $step failed or ran out of time (exit $?)"
 done

@@ -103,3 +103,22 @@ def test_a_baseline_comparison_keeps_each_thread_count_and_scatter_apart():
     assert rows["2 threads, atomic"]["ratio_fwd_Mpss"] == 4 / 2
     assert rows["coloured"]["ratio_fwd_Mpss"] == 9 / 3
     assert setting({"dim": 3}) == "default"
+
+
+def test_a_kernels_profile_splits_into_its_loops_in_their_order():
+    """Taichi's records name a launch's parallel loops ``<kernel>_c<i>_<j>_kernel_<k>_<type>``: per kernel the
+    loops come in the order k of the kernel's code (10 after 2), each summed over the kernel's template
+    instances; a kernel of one loop is not split."""
+    from cosim.bench.mpm import by_kernel, by_task
+
+    records = [
+        ["_substep_fused_c84_0_kernel_10_range_for", 1.0, 3],
+        ["_substep_fused_c84_0_kernel_2_range_for", 4.0, 3],
+        ["_substep_fused_c84_1_kernel_2_range_for", 0.5, 3],
+        ["_substep_fused_c84_0_kernel_0_serial", 0.25, 3],
+        ["_grid_update_c12_0_kernel_0_range_for", 2.0, 3],
+    ]
+    tasks = by_task(records, "_substep_fused")
+    assert tasks == [("kernel_0_serial", 0.25), ("kernel_2_range_for", 4.5), ("kernel_10_range_for", 1.0)]
+    assert sum(ms for _, ms in tasks) == next(k[1] for k in by_kernel(records) if k[0] == "_substep_fused")
+    assert by_task(records, "_grid_update") == []

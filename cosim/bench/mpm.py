@@ -257,14 +257,31 @@ def by_kernel(records: list) -> list[list]:
     return sorted(kernels.values(), key=lambda r: -r[1])
 
 
-def run_profile(out_dir: Path, top: int = 10, command: str | None = None) -> int:
-    """Taichi's kernel profiler over 3D 64³ float32: ms per substep of the top kernels, forward and backward."""
+def by_task(records: list, kernel: str) -> list[tuple[str, float]]:
+    """The parallel loops of ``kernel`` (a ``by_kernel`` row's name) with more than one: [(task, ms)], in
+    the kernel's order, a task's template instances summed (``kernel_3_range_for``: its fourth loop)."""
+    tasks: dict[str, float] = {}
+    for name, ms, _count in records:
+        instance, _, task = name.partition("_kernel_")
+        if re.sub(r"_c\d+_\d+", "", instance) == kernel:
+            tasks[f"kernel_{task}"] = tasks.get(f"kernel_{task}", 0.0) + ms
+    order = sorted(tasks, key=lambda t: int(re.match(r"kernel_(\d+)", t).group(1)))
+    return [(t, tasks[t]) for t in order] if len(order) > 1 else []
+
+
+def run_profile(out_dir: Path, config: dict | None = None, top: int = 10, command: str | None = None) -> int:
+    """Taichi's kernel profiler over a forward and a backward pass of ``config`` (default 3D 64³ float32 on
+    the CPU): ms per substep of the top kernels, and of each kernel's parallel loops (its tasks, in the
+    order of the kernel's code: the fused substep's clear, stress, scatter, grid update, G2P)."""
     from cosim.hardware import hardware_line
 
     interp = current_interpreter()
     interp.env["COSIM_KERNEL_PROFILER"] = "1"
-    row = run_config({**CONFIGS[2], "substeps": 20, "macro_steps": 3, "profile": True}, interp)
-    print(f"\nKernel profile, 3D 64³ float32, {row['particles']:,} particles, 20 substeps x 3, on {hardware_line()}")
+    config = config or {**CONFIGS[2], "substeps": 20, "macro_steps": 3}
+    row = run_config({**config, "profile": True}, interp)
+    what = (f"{row['dim']}D {row['grid']} {row['precision']}, {row['particles']:,} particles, {row['arch']}, "
+            f"{config['substeps']} substeps x {config['macro_steps']}")  # fmt: skip
+    print(f"\nKernel profile, {what}, on {hardware_line()}")
     print("ms per substep in each kernel (backward: its forward-named kernels are the checkpoint recompute)")
     rows = []
     for phase, records in row["profile"].items():
@@ -273,11 +290,14 @@ def run_profile(out_dir: Path, top: int = 10, command: str | None = None) -> int
         print(f"\n{phase}: {total:.2f} ms per substep in kernels")
         for name, ms, launches in kernels[:top]:
             print(f"  {ms:8.3f} ms {100 * ms / total:5.1f}% {launches:6.2f} launches  {name}")
+            tasks = [(task, task_ms) for task, task_ms in by_task(records, name) if task_ms >= 0.01 * total]
+            for task, task_ms in tasks if len(tasks) > 1 else []:  # its loops of 1 % of the phase or more
+                print(f"  {task_ms:8.3f} ms {100 * task_ms / total:5.1f}%                   {task}")
         rows += [{"phase": phase, "kernel": k, "ms_per_substep": ms, "launches_per_substep": n} for k, ms, n in kernels]
     write_csv(out_dir / "mpm_profile.csv", rows)
     title = (
-        f"Kernel profile, 3D 64³ float32, {row['particles']:,} particles, 20 substeps x 3 macro steps: ms per "
-        "substep in each kernel (backward: its forward-named kernels are the checkpoint recompute)"
+        f"Kernel profile, {what} macro steps: ms per substep in each kernel (backward: its forward-named "
+        "kernels are the checkpoint recompute)"
     )
     columns = [("phase", "phase", ""), ("kernel", "kernel", ""), ("ms_per_substep", "ms per substep", ".3f"),
                ("launches_per_substep", "launches per substep", ".2f")]  # fmt: skip

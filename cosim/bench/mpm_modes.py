@@ -45,7 +45,7 @@ def run_mpm_bench(
     configs = expand(configs, arch, threads, scatters)
     try:
         if profile:
-            return run_profile(out_dir, command=command)
+            return run_profile(out_dir, profile_config(arch, particles, quick), command=command)
         if baseline is not None:
             return run_baseline_bench(out_dir, configs, baseline, repeat, name, command)
         if peer:
@@ -56,6 +56,16 @@ def run_mpm_bench(
         return 1
 
 
+def profile_config(arch: str, particles: int | None, quick: bool) -> dict | None:
+    """What ``--profile`` profiles: the block of ``--particles``, else on a GPU the 2M block of
+    ``GPU_CONFIGS`` (10 x 3 steps), else None (``run_profile``'s 3D 64³ float32 on the CPU)."""
+    if particles:
+        return {**particle_config(particles, quick), "arch": arch}
+    if arch != "cpu":
+        return gpu_configs(quick)[-1] | {"arch": arch}
+    return None
+
+
 def check_mode(
     sizes: bool, baseline: Path | None, profile: bool, arch: str, threads: list[int] | None,
     scatters: list[str] | None, particles: int | None, peer: str | None = None,
@@ -63,8 +73,11 @@ def check_mode(
     """An InputError naming the flags that do not go together, or a scatter that does not exist."""
     if peer and (sizes or baseline is not None or profile or threads or scatters or particles):
         raise InputError("--peer compares its own sizes on the default settings; give it with --arch, --repeat only")
-    if profile and (sizes or baseline is not None or threads or scatters or particles or arch != "cpu"):
-        raise InputError("--profile runs alone (3D 64³ float32 on the CPU); leave out the other mpm flags")
+    if profile and (sizes or baseline is not None or threads or scatters):
+        raise InputError(
+            "--profile profiles one configuration (3D 64³ float32 on the CPU, the 2M block with --arch cuda, or "
+            "--particles N); leave out --sizes, --baseline, --threads and --scatter"
+        )
     if threads and arch != "cpu":
         raise InputError(f"--threads sets CPU threads; --arch {arch} has none to set: leave one out")
     if sizes and particles:
