@@ -130,8 +130,9 @@ def test_survey_chunks_tile_every_body_in_enough_short_chunks_and_a_bounded_tabl
     """The survey's and energy sums' chunks (one thread's serial loop each, a row of the host's table)
     cover each body's particles once, in order; a small engine gets chunks of ``MIN_CHUNK`` (1,485 particles:
     93 threads, not 2 of 1,024), a large one at most ``MAX_CHUNKS`` rows (2M particles: 4,096 + a last
-    partial chunk per body)."""
-    from cosim.engines.mpm_watch import MAX_CHUNKS, MIN_CHUNK, body_chunks
+    partial chunk per body), all within the device table's rows, which its bucket fixes."""
+    from cosim.engines.mpm_inputs import particle_capacity
+    from cosim.engines.mpm_watch import MAX_CHUNKS, MIN_CHUNK, body_chunks, chunk_rows
 
     for ranges in ([(0, 1485)], [(0, 10), (10, 5000), (5000, 5001)], [(0, 1_000_000), (1_000_000, 2_000_000)]):
         chunks = body_chunks(ranges)
@@ -139,6 +140,7 @@ def test_survey_chunks_tile_every_body_in_enough_short_chunks_and_a_bounded_tabl
             rows = chunks[chunks[:, 2] == b]
             assert rows[0, 0] == lo and rows[-1, 1] == hi and np.array_equal(rows[1:, 0], rows[:-1, 1])
         assert len(chunks) <= MAX_CHUNKS + len(ranges)
+        assert len(chunks) <= chunk_rows(particle_capacity(ranges[-1][1]), len(ranges))  # the device table's
         assert (chunks[:, 1] - chunks[:, 0]).max() == max(MIN_CHUNK, -(-ranges[-1][1] // MAX_CHUNKS))
     assert len(body_chunks([(0, 1485)])) == 93
 

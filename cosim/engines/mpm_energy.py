@@ -25,8 +25,7 @@ class EnergyMeter:
 
     def __init__(self, engine):
         self.engine = engine
-        watch = engine.watch  # the same particle chunks as the survey's, on the device once
-        self.chunks, self.n_chunks, self.chunk_table = watch.chunks, watch.n_chunks, watch.chunk_table
+        self.chunks = engine.watch.chunks  # the same particle chunks as the survey's, on the device once
 
     @ti.func
     def strain_density(self, b, F):
@@ -46,11 +45,11 @@ class EnergyMeter:
         """Per chunk c (parallel; serial within a chunk), into ``out[c]``: the ``TERMS`` of its particles."""
         e = self.engine
         ti.loop_config(serialize=e.serial_particle_loops)
-        for c in range(self.n_chunks):
-            b = self.chunk_table[c, 2]
+        for c in range(self.chunks.count[None]):
+            b = self.chunks.table[c, 2]
             m, vol = e.p_mass[b], e.p_vol[b]
             sums = ti.Vector.zero(ti.f64, 4)
-            for p in range(self.chunk_table[c, 0], self.chunk_table[c, 1]):
+            for p in range(self.chunks.table[c, 0], self.chunks.table[c, 1]):
                 F = e.F[slot, p]
                 terms = ti.Vector(
                     [
@@ -69,10 +68,10 @@ class EnergyMeter:
         """Per chunk c, into ``out[c]``: sum I . v + |I|^2 / 2m of its particles, I the control impulse."""
         e = self.engine
         ti.loop_config(serialize=e.serial_particle_loops)
-        for c in range(self.n_chunks):
-            m = e.p_mass[self.chunk_table[c, 2]]
+        for c in range(self.chunks.count[None]):
+            m = e.p_mass[self.chunks.table[c, 2]]
             work = ti.cast(0.0, ti.f64)
-            for p in range(self.chunk_table[c, 0], self.chunk_table[c, 1]):
+            for p in range(self.chunks.table[c, 0], self.chunks.table[c, 1]):
                 impulse = e.control[p]
                 work += ti.cast(impulse.dot(e.v[slot, p]) + impulse.norm_sqr() / (2.0 * m), ti.f64)
             out[c] = work
@@ -80,14 +79,14 @@ class EnergyMeter:
     def control_work(self, slot: int) -> float:
         """[J] Kinetic energy the control impulses (``engine.control``) add to the particles in ``slot``
         (their velocities before the impulses): sum I . v + |I|^2 / 2m."""
-        out = np.zeros(len(self.chunks))
+        out = np.zeros(len(self.chunks.chunks))
         self._chunk_control_work(slot, out)
         return float(out.sum())
 
     def body_sums(self, slot: int) -> np.ndarray:
         """(bodies, 4) float64: per body the ``TERMS`` of the particles in ``slot``."""
-        out = np.zeros((len(self.chunks), len(TERMS)))
+        out = np.zeros((len(self.chunks.chunks), len(TERMS)))
         self._chunk_sums(slot, out)
         sums = np.zeros((len(self.engine.bodies), len(TERMS)))
-        np.add.at(sums, self.chunks[:, 2], out)
+        np.add.at(sums, self.chunks.chunks[:, 2], out)
         return sums

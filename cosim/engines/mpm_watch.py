@@ -47,13 +47,30 @@ def body_chunks(ranges: list[tuple[int, int]]) -> np.ndarray:
     return np.array(chunks, dtype=np.int32).reshape(-1, 3)
 
 
-def chunk_table(owner, chunks: np.ndarray):
-    """``chunks`` (``body_chunks``) in an i32 field of ``owner`` (at least one row), which the per-chunk
-    kernels read: an array handed to a kernel from the host is, on a GPU, a copy and a wait at every launch."""
-    table = field_pool.scalar(owner, ti.i32, shape=(max(len(chunks), 1), 3))
-    if len(chunks):
-        table.from_numpy(chunks)
-    return table
+def chunk_rows(capacity: int, bodies: int) -> int:
+    """Rows enough for the chunks of any particle count up to ``capacity`` in ``bodies`` bodies (each body
+    may end in a partial chunk): the table's shape, fixed by the engine's bucket (``particle_capacity``)
+    so that another count in it compiles no kernel anew."""
+    return max(min(-(-capacity // MIN_CHUNK), MAX_CHUNKS), -(-capacity // CHUNK)) + bodies
+
+
+class ChunkTable:
+    """``chunks`` (``body_chunks``) on the device for the per-chunk kernels of ``owner``: ``table`` an i32
+    field of ``chunk_rows`` rows (the unused ones empty), ``count`` a 0-D field holding how many are used,
+    which the kernels loop to (a Python count would be a constant compiled into them). An array handed to a
+    kernel from the host is, on a GPU, a copy and a wait at every launch; these are copied once."""
+
+    def __init__(self, owner, chunks: np.ndarray, capacity: int, bodies: int):
+        self.chunks = chunks
+        rows = chunk_rows(capacity, bodies)
+        if len(chunks) > rows:
+            raise ValueError(f"{len(chunks)} particle chunks exceed the {rows} rows of capacity {capacity}")
+        self.table = field_pool.scalar(owner, ti.i32, shape=(rows, 3))
+        padded = np.zeros((rows, 3), dtype=np.int32)
+        padded[: len(chunks)] = chunks
+        self.table.from_numpy(padded)
+        self.count = field_pool.scalar(owner, ti.i32, shape=())
+        self.count[None] = len(chunks)
 
 
 @dataclass
@@ -92,9 +109,7 @@ class ParticleWatch:
         self.first.fill(NONE)
         self.low = engine.dx  # [m] inside the grid: at least a cell from each face
         self.high = ti.Vector([c * engine.dx - engine.dx for c in engine.cfg.cells])
-        self.chunks = body_chunks(engine.ranges)
-        self.n_chunks = len(self.chunks)
-        self.chunk_table = chunk_table(self, self.chunks)
+        self.chunks = ChunkTable(self, body_chunks(engine.ranges), engine.capacity, self.n_bodies)
 
     @ti.func
     def flag(self, p, s, x, F, new_x, new_F):
@@ -108,10 +123,10 @@ class ParticleWatch:
         outside and its body's first bad substep; then the first bad substeps are reset."""
         e = self.engine
         ti.loop_config(serialize=e.serial_particle_loops)
-        for c in range(self.n_chunks):
+        for c in range(self.chunks.count[None]):
             peak, outside = 0.0, 0
             bad = ti.Vector.zero(ti.i32, 4)
-            for p in range(self.chunk_table[c, 0], self.chunk_table[c, 1]):
+            for p in range(self.chunks.table[c, 0], self.chunks.table[c, 1]):
                 x, v = e.x[slot, p], e.v[slot, p]
                 peak = ti.max(peak, ti.abs(v).max())
                 sums = ti.Vector([x.sum(), v.sum(), e.C[slot, p].sum(), e.F[slot, p].sum()])
@@ -125,7 +140,7 @@ class ParticleWatch:
             for k in ti.static(range(4)):
                 out[c, 1 + k] = bad[k]
             out[c, 5] = outside
-            out[c, 6] = self.first[self.chunk_table[c, 2]]
+            out[c, 6] = self.first[self.chunks.table[c, 2]]
         ti.loop_config(serialize=True)  # a few bodies: a thread-pool dispatch would cost more (arch)
         for b in range(self.n_bodies):
             self.first[b] = NONE
@@ -133,14 +148,15 @@ class ParticleWatch:
     def survey(self, slot: int) -> dict[str, BodyHealth]:
         """{body name: its ``BodyHealth``} for the particles in ``slot``, with the first bad substep of the
         substeps since the last survey; resets that."""
-        out = np.zeros((len(self.chunks), 7))
+        body = self.chunks.chunks[:, 2]
+        out = np.zeros((len(body), 7))
         self._survey(slot, out)
         first = np.full(self.n_bodies, NONE)
-        first[self.chunks[:, 2]] = out[:, 6]  # each of a body's chunks holds its first bad substep
+        first[body] = out[:, 6]  # each of a body's chunks holds its first bad substep
         peak = np.zeros(self.n_bodies)
-        np.maximum.at(peak, self.chunks[:, 2], out[:, 0])
+        np.maximum.at(peak, body, out[:, 0])
         counts = np.zeros((self.n_bodies, 5))
-        np.add.at(counts, self.chunks[:, 2], out[:, 1:6])
+        np.add.at(counts, body, out[:, 1:6])
         return {
             body.name: BodyHealth(
                 speed=float(peak[b]),
