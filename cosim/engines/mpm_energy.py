@@ -79,14 +79,14 @@ class EnergyMeter:
     def control_work(self, slot: int) -> float:
         """[J] Kinetic energy the control impulses (``engine.control``) add to the particles in ``slot``
         (their velocities before the impulses): sum I . v + |I|^2 / 2m."""
-        out = np.zeros(len(self.chunks.chunks))
+        out = np.zeros(len(self.chunks.host))
         self._chunk_control_work(slot, out)
         return float(out.sum())
 
     def body_sums(self, slot: int) -> np.ndarray:
         """(bodies, 4) float64: per body the ``TERMS`` of the particles in ``slot``."""
-        out = np.zeros((len(self.chunks.chunks), len(TERMS)))
+        out = np.zeros((len(self.chunks.host), len(TERMS)))
         self._chunk_sums(slot, out)
         sums = np.zeros((len(self.engine.bodies), len(TERMS)))
-        np.add.at(sums, self.chunks.chunks[:, 2], out)
+        np.add.at(sums, self.chunks.host[:, 2], out)
         return sums

@@ -55,13 +55,14 @@ def chunk_rows(capacity: int, bodies: int) -> int:
 
 
 class ChunkTable:
-    """``chunks`` (``body_chunks``) on the device for the per-chunk kernels of ``owner``: ``table`` an i32
-    field of ``chunk_rows`` rows (the unused ones empty), ``count`` a 0-D field holding how many are used,
-    which the kernels loop to (a Python count would be a constant compiled into them). An array handed to a
-    kernel from the host is, on a GPU, a copy and a wait at every launch; these are copied once."""
+    """The particle chunks (``body_chunks``) of ``owner``'s per-chunk kernels: ``host`` the rows on the host,
+    ``table`` the same in an i32 field of ``chunk_rows`` rows (the unused ones empty), ``count`` a 0-D field
+    holding how many are used, which the kernels loop to (a Python count would be a constant compiled into
+    them). An array handed to a kernel from the host is, on a GPU, a copy and a wait at every launch; these
+    are copied once."""
 
     def __init__(self, owner, chunks: np.ndarray, capacity: int, bodies: int):
-        self.chunks = chunks
+        self.host = chunks  # the rows used, on the host (their bodies group the kernels' results)
         rows = chunk_rows(capacity, bodies)
         if len(chunks) > rows:
             raise ValueError(f"{len(chunks)} particle chunks exceed the {rows} rows of capacity {capacity}")
@@ -148,7 +149,7 @@ class ParticleWatch:
     def survey(self, slot: int) -> dict[str, BodyHealth]:
         """{body name: its ``BodyHealth``} for the particles in ``slot``, with the first bad substep of the
         substeps since the last survey; resets that."""
-        body = self.chunks.chunks[:, 2]
+        body = self.chunks.host[:, 2]
         out = np.zeros((len(body), 7))
         self._survey(slot, out)
         first = np.full(self.n_bodies, NONE)
