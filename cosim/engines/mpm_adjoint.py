@@ -111,10 +111,11 @@ class MPMAdjointKernels(MPMKernels):
         self.grid_v.grad[g, I] += g_v
 
     @ti.func
-    def _g2p_adjoint_particle(self, p, src, dst, g, out: ti.template(), atomic: ti.template()):
-        """Scatter particle p's new velocity and affine adjoints onto ``out`` over its stencil."""
+    def _g2p_adjoint_particle(self, p, src, dst, g, out: ti.template()):
+        """Scatter particle p's new velocity and affine adjoints onto ``out`` over its stencil, with plain adds
+        (the serial and coloured scatters: ``_g2p_adjoint_scatter``)."""
         base, fx, w = self.stencil(self.x[src, p])
-        self._g2p_adjoint_spread(base, fx, w, self.v.grad[dst, p], self.C.grad[dst, p], g, out, atomic)
+        self._g2p_adjoint_spread(base, fx, w, self.v.grad[dst, p], self.C.grad[dst, p], g, out, False)
 
     @ti.func
     def _g2p_adjoint_spread(self, base, fx, w, v_bar, C_bar, g, out: ti.template(), atomic: ti.template()):
@@ -150,11 +151,11 @@ class MPMAdjointKernels(MPMKernels):
                     blk = self.colour_blocks[colour, j // self.spread]
                     first = self.block_start[blk]
                     for k in range(first, first + self.block_count[blk]):
-                        self._g2p_adjoint_particle(self.bin_order[k], src, dst, g, out, False)
+                        self._g2p_adjoint_particle(self.bin_order[k], src, dst, g, out)
         else:
             ti.loop_config(serialize=True)
             for p in range(self.count[None]):
-                self._g2p_adjoint_particle(p, src, dst, g, out, False)
+                self._g2p_adjoint_particle(p, src, dst, g, out)
         if ti.static(hand_over):
             self._hand_over(g, source)
 

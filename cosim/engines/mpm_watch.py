@@ -35,7 +35,7 @@ CHUNK = 1024
 
 def chunk_length(particles: int) -> int:
     """Particles per chunk for an engine of ``particles`` (``MIN_CHUNK``, ``MAX_CHUNKS``, ``CHUNK``)."""
-    return int(min(CHUNK, max(MIN_CHUNK, -(-particles // MAX_CHUNKS))))
+    return min(CHUNK, max(MIN_CHUNK, -(-particles // MAX_CHUNKS)))
 
 
 def body_chunks(ranges: list[tuple[int, int]]) -> np.ndarray:
