@@ -80,3 +80,20 @@ def test_the_report_fails_a_resolved_disagreement(capsys):
     with pytest.raises(GradientCheckError, match="above their noise floor"):
         report_gradcheck(check(lambda x: 2.0 * tiny_gradient(x)), 1e-4, 3)
     assert "max relative error: 5" in capsys.readouterr().out
+
+
+def test_a_one_entry_parameter_is_checked_along_its_one_direction():
+    """A parameter of one entry has one direction up to sign: three would run the same rollouts three times.
+    A six-entry parameter still gets its three; each resolved direction costs two rollouts after the gradient's."""
+    calls = []
+
+    def evaluate(params, grad):
+        calls.append(grad)
+        loss = 1.0 + W @ params["x"] + 3.0 * params["E"][0]
+        return loss, ({"x": W.copy(), "E": np.array([3.0])} if grad else None)
+
+    params = {"x": np.zeros(6), "E": np.array([1.0])}
+    results = check_gradients(evaluate, params, ["x", "E"], {"x": 1.0, "E": 1.0}, directions=3)
+    assert [r.param for r in results] == ["x", "x", "x", "E"]
+    assert all(r.relative_error < 1e-8 for r in results), results
+    assert calls == [True] + [False] * 8

@@ -70,7 +70,8 @@ def check_gradients(
     E, ...; a number, or an array per entry that broadcasts to the parameter);
     the direction is a random one of unit RMS per entry times the scale, the
     step ``rel_step`` along it, so every entry is perturbed by a comparable
-    relative amount. Run in float64: the truncation error is O(eps^2) and the round-off
+    relative amount. A parameter of one entry (one body's E) has one direction up to sign, which
+    would only repeat the same rollouts: it is checked along one. Run in float64: the truncation error is O(eps^2) and the round-off
     O(1e-16 |L| / eps); when the loss changes by less than 1e-10 |L| (a weak
     parameter such as E) the step grows tenfold, at most three times, so the
     round-off stays below ~1e-6 relative. Growing further is not safe: contact
@@ -95,7 +96,7 @@ def check_gradients(
     value, grads = evaluate(params, True)
     results = []
     for name in names:
-        for k in range(directions):
+        for k in range(directions if params[name].size > 1 else 1):
             d = rng.standard_normal(params[name].shape)
             d *= scales[name] / np.sqrt(np.mean(d * d))
             eps = rel_step

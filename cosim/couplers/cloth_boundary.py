@@ -46,6 +46,7 @@ replays the tracing bit for bit.
 import numpy as np
 import taichi as ti
 
+from cosim.couplers.boundary import NODE, at_node
 from cosim.couplers.cloth_mesh_query import INTERIOR, MeshQuery, closest_point_on_triangle
 from cosim.couplers.cloth_topology import build_topology
 from cosim.couplers.cloth_tracing import CANDIDATES, PenetrationTracer
@@ -140,10 +141,11 @@ class ClothBoundary:
 
     # ------------------------------------------------------------------ geometry
     @ti.func
-    def _face_geometry(self, f, x, legal, side):
+    def _face_geometry(self, f, x, legal, side: ti.template()):
         """Signed distance [m] of x to face f, the unit normal towards the legal side and the closest
         point's barycentrics. ``legal``: +1 / -1, the legal side in f's winding; ``side`` the stored
-        side in f's winding (used on the open boundary), 0 for a grid node (two-sided)."""
+        side in f's winding (used on the open boundary, never 0), or ``NODE`` for a grid node, two-sided (a
+        Python int: the node's path and a particle's compile apart, as with ``at_node``)."""
         a, b, c = self.query.corners(f)
         point, w, region = closest_point_on_triangle(x, a, b, c)
         diff = x - point
@@ -152,13 +154,13 @@ class ClothBoundary:
             nf = (b - a).cross(c - a)
             nf = nf / ti.sqrt(nf.norm_sqr())
             h = nf.dot(diff)
-            if side == 0:  # two-sided: towards the node
+            if ti.static(at_node(side)):  # two-sided: towards the node
                 legal = ti.select(h >= 0, 1, -1)
             d, n = legal * h, legal * nf
         else:
             dist = ti.sqrt(diff.norm_sqr() + TINY)
             sign = 1
-            if side != 0:
+            if ti.static(not at_node(side)):
                 geo = self.tracer.side_of(f, region, diff)
                 if geo == 0 or self.tracer.on_open_boundary(f, region):
                     geo = side
@@ -205,58 +207,78 @@ class ClothBoundary:
         self._blend.grad(src, s % self.slots)
 
     # ------------------------------------------------------------------ what a contact model asks
+    # p is a template (``cosim.couplers.boundary.at_node``): a grid node's path and a particle's compile apart
     @ti.func
-    def _geometry(self, s, x, p):
+    def _geometry(self, s, x, p: ti.template()):
         """(face or -1, signed distance [m], unit normal towards the legal side) at x: a particle's
         blended frame (first order about the particle's traced position, exact there), or a grid
         node's nearest face, two-sided."""
-        f, d, n = -1, FAR, ti.Vector([0.0, 1.0, 0.0])
-        if p >= 0:
-            k = s % self.slots
-            f = self.tracer.face_s[k, p]
-            if f >= 0:
-                n = self.frame_n[k, p]
-                d = self.frame_d[k, p] + n.dot(x - self.frame_x[k, p])
+        if ti.static(at_node(p)):  # (a conditional expression would build both calls)
+            return self._node_geometry(x)
         else:
-            f = self._node_face(x)
-            if f >= 0:
-                d, n, _w = self._face_geometry(f, x, 1, 0)
+            return self._particle_geometry(s, x, p)
+
+    @ti.func
+    def _particle_geometry(self, s, x, p):
+        k = s % self.slots
+        f, d, n = self.tracer.face_s[k, p], FAR, ti.Vector([0.0, 1.0, 0.0])
+        if f >= 0:
+            n = self.frame_n[k, p]
+            d = self.frame_d[k, p] + n.dot(x - self.frame_x[k, p])
         return f, d, n
 
     @ti.func
-    def distance(self, s, b: ti.template(), x, p):
+    def _node_geometry(self, x):
+        f, d, n = self._node_face(x), FAR, ti.Vector([0.0, 1.0, 0.0])
+        if f >= 0:
+            d, n, _w = self._face_geometry(f, x, 1, NODE)
+        return f, d, n
+
+    @ti.func
+    def distance(self, s, b: ti.template(), x, p: ti.template()):
         _f, d, _n = self._geometry(s, x, p)
         return d
 
     @ti.func
-    def distance_normal(self, s, b: ti.template(), x, p):
+    def distance_normal(self, s, b: ti.template(), x, p: ti.template()):
         _f, d, n = self._geometry(s, x, p)
         return d, n
 
     @ti.func
-    def _vertex_weights(self, s, x, p):
+    def _vertex_weights(self, s, x, p: ti.template()):
         """(faces (CANDIDATES,) or -1, weights (CANDIDATES, 3)) spreading a contact at x over cloth vertices:
         a particle's blended frame, or a grid node's nearest face (row 0). The weights sum to one."""
+        if ti.static(at_node(p)):
+            return self._node_weights(x)
+        else:
+            return self._particle_weights(s, p)
+
+    @ti.func
+    def _particle_weights(self, s, p):
         faces = ti.Vector([-1] * CANDIDATES)
         weights = ti.Matrix.zero(float, CANDIDATES, 3)
-        if p >= 0:
-            k = s % self.slots
-            for j in ti.static(range(CANDIDATES)):
-                faces[j] = self.tracer.candidate_s[k, p, j]
-                w = self.frame_w[k, p, j]
-                for i in ti.static(range(3)):
-                    weights[j, i] = w[i]
-        else:
-            f = self._node_face(x)
-            if f >= 0:
-                _d, _n, w = self._face_geometry(f, x, 1, 0)
-                faces[0] = f
-                for i in ti.static(range(3)):
-                    weights[0, i] = w[i]
+        k = s % self.slots
+        for j in ti.static(range(CANDIDATES)):
+            faces[j] = self.tracer.candidate_s[k, p, j]
+            w = self.frame_w[k, p, j]
+            for i in ti.static(range(3)):
+                weights[j, i] = w[i]
         return faces, weights
 
     @ti.func
-    def contact_velocity(self, s, b: ti.template(), x, p):
+    def _node_weights(self, x):
+        faces = ti.Vector([-1] * CANDIDATES)
+        weights = ti.Matrix.zero(float, CANDIDATES, 3)
+        f = self._node_face(x)
+        if f >= 0:
+            _d, _n, w = self._face_geometry(f, x, 1, NODE)
+            faces[0] = f
+            for i in ti.static(range(3)):
+                weights[0, i] = w[i]
+        return faces, weights
+
+    @ti.func
+    def contact_velocity(self, s, b: ti.template(), x, p: ti.template()):
         faces, weights = self._vertex_weights(s, x, p)
         v = ti.Vector.zero(float, 3)
         for j in ti.static(range(CANDIDATES)):
@@ -267,7 +289,7 @@ class ClothBoundary:
         return v
 
     @ti.func
-    def add_reaction(self, s, b: ti.template(), x, dp, p):
+    def add_reaction(self, s, b: ti.template(), x, dp, p: ti.template()):
         faces, weights = self._vertex_weights(s, x, p)
         for j in ti.static(range(CANDIDATES)):
             if faces[j] >= 0:

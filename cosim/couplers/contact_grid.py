@@ -5,6 +5,7 @@ numbers behind each choice."""
 
 import taichi as ti
 
+from cosim.couplers.boundary import NODE
 from cosim.couplers.contact_rules import (
     CELL_SHARE,
     DENSE_FILL,
@@ -178,7 +179,7 @@ class GridContact:
             for src in ti.static(self.sources):
                 if ti.static(self._held_by_liquid(src)):
                     for b in ti.static(range(src.n)):
-                        inside += occupancy(src.distance(s, b, xi, -1), e.dx)
+                        inside += occupancy(src.distance(s, b, xi, NODE), e.dx)
             self.solid[g, I] = ti.min(inside, 1.0)
 
     @ti.func
@@ -218,7 +219,7 @@ class GridContact:
         if m > 0:  # empty nodes need no boundary lookup
             for src in ti.static(self.sources):
                 for b in ti.static(range(src.n)):
-                    d, n = src.distance_normal(s, b, xi, -1)
+                    d, n = src.distance_normal(s, b, xi, NODE)
                     gap = d - ti.static(self._band_of(src))
                     if ti.static(self._liquid_held_at(src)):  # noqa: SIM102 (compile-time, then run-time)
                         # beyond LIQUID_REACH cells the liquid's gap exceeds a cell whatever its fill (it
@@ -229,9 +230,9 @@ class GridContact:
                             gap = ti.min(gap, d - e.dx * self._liquid_reach(g, I, d, n))
                     # a node a cell beyond keeps its velocity unless material crosses a cell per substep
                     if gap < e.dx:
-                        vc = src.contact_velocity(s, b, xi, -1)
+                        vc = src.contact_velocity(s, b, xi, NODE)
                         v_new = speculative_bc(v, n, vc, self.friction, ti.max(gap, 0.0), dt)
-                        src.add_reaction(s, b, xi, m * (v_new - v), -1)  # momentum given to the material
+                        src.add_reaction(s, b, xi, m * (v_new - v), NODE)  # momentum given to the material
                         v = v_new
         self.output[g, I] = v
 
