@@ -142,7 +142,7 @@ class MPMEngine(MPMAdjointKernels):
     # ------------------------------------------------------------ the contract
     def state(self) -> dict[str, np.ndarray]:
         """Particle state at the current macro step: x (n,d), v (n,d), C (n,d,d), F (n,d,d)."""
-        return {k: self._get(getattr(self, k), self._slot) for k in STATE_KEYS}
+        return self._get_state(self._state_fields(), self._slot)
 
     def max_speed(self) -> float:
         """Largest velocity component [m/s] of any particle now (from ``health``: no particle state read)."""

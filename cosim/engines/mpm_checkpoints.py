@@ -96,7 +96,7 @@ class CheckpointStore:
         budget, else read to the host (float64)."""
         arrays = self._take()
         if arrays is None:
-            return {k: self.engine._get(f, slot) for k, f in zip(STATE_KEYS, fields)}
+            return self.engine._get_state(fields, slot)
         self.engine._copy_state(*fields, slot, *(arrays[k] for k in STATE_KEYS), True)
         state = DeviceState(self, arrays)
         # a weak reference: the registry of finalizers must not hold the store, and through it the engine
@@ -109,8 +109,7 @@ class CheckpointStore:
             self.engine._copy_state(*fields, slot, *(state.arrays[k] for k in STATE_KEYS), False)
             return
         values = {k: state[k] for k in STATE_KEYS}  # read first: a host view may read the slot written
-        for k, f in zip(STATE_KEYS, fields):
-            self.engine._put(f, slot, values[k])
+        self.engine._put_state(fields, slot, values)
 
     def _take(self) -> dict[str, ti.Ndarray] | None:
         """A set of buffers from the pool, or new ones within the budget; None when none fits."""

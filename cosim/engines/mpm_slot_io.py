@@ -5,10 +5,13 @@ per-particle field given), ``count``, ``n_particles``, ``dim``, ``real`` and ``s
 They loop over the particle count, not the fields' capacity (``mpm_inputs.particle_capacity``).
 """
 
+from collections.abc import Mapping
+
 import numpy as np
 import taichi as ti
 
 from cosim.engines.data_oriented import data_oriented
+from cosim.engines.mpm_inputs import STATE_KEYS
 from cosim.engines.mpm_watch import non_finite
 
 
@@ -36,17 +39,6 @@ class SlotIO:
             else:
                 for i, j in ti.static(ti.ndrange(fld.n, fld.m)):
                     out[p, i, j] = fld[slot, p][i, j]
-
-    @ti.kernel
-    def _write_slot(self, fld: ti.template(), slot: ti.i32, src: ti.types.ndarray()):
-        ti.loop_config(serialize=self.serial_particle_loops)
-        for p in range(self.count[None]):
-            if ti.static(fld.m == 1):
-                for i in ti.static(range(fld.n)):
-                    fld[slot, p][i] = src[p, i]
-            else:
-                for i, j in ti.static(ti.ndrange(fld.n, fld.m)):
-                    fld[slot, p][i, j] = src[p, i, j]
 
     @ti.kernel
     def _copy_state(
@@ -106,5 +98,19 @@ class SlotIO:
         self._read_slot(fld, slot, out)
         return out.astype(np.float64)
 
-    def _put(self, fld, slot: int, values: np.ndarray) -> None:
-        self._write_slot(fld, slot, np.ascontiguousarray(values, dtype=self.real))
+    def _get_state(self, fields: tuple, slot: int) -> dict[str, np.ndarray]:
+        """Slot ``slot`` of x, v, C, F (or their adjoints: ``fields``) on the host, float64, in one launch of
+        ``_copy_state``: the kernel the device checkpoints compile anyway (host arrays in the engine's
+        precision key it the same), where a read per field compiled a kernel per field."""
+        arrays = self._state_arrays()
+        self._copy_state(*fields, slot, *arrays.values(), True)
+        return {k: a.astype(np.float64) for k, a in arrays.items()}
+
+    def _put_state(self, fields: tuple, slot: int, values: Mapping[str, np.ndarray]) -> None:
+        """Write host arrays ``values`` (by ``STATE_KEYS``) into slot ``slot`` of ``fields`` (one launch)."""
+        arrays = {k: np.ascontiguousarray(values[k], dtype=self.real) for k in STATE_KEYS}
+        self._copy_state(*fields, slot, *arrays.values(), False)
+
+    def _state_arrays(self) -> dict[str, np.ndarray]:
+        n, d = self.n_particles, self.dim
+        return {k: np.empty((n, d) if k in ("x", "v") else (n, d, d), dtype=self.real) for k in STATE_KEYS}
