@@ -71,16 +71,20 @@ def bending_energy(xe: jnp.ndarray, weight: jnp.ndarray, theta0: jnp.ndarray) ->
 CHUNK = 512  # elements per jitted call: one compile per process whatever the mesh size
 
 
+def _padded(a: np.ndarray) -> np.ndarray:
+    """a (n, ...) with its last row repeated up to a whole number of CHUNK rows."""
+    return np.pad(a, [(0, -len(a) % CHUNK)] + [(0, 0)] * (a.ndim - 1), mode="edge")
+
+
 def _chunked(fn):
-    """fn vmapped and jitted over CHUNK elements, applied chunk by chunk to (n, ...) NumPy arrays
-    (the last chunk padded by repeating its last element); returns a NumPy array (n, ...)."""
+    """fn vmapped and jitted over CHUNK elements, applied chunk by chunk to ``_padded`` NumPy arrays;
+    returns the first n rows, a NumPy array (n, ...). The element data are padded once per mesh and the
+    positions gathered through padded element indices, not padded at each call (66 ``np.pad`` a step of
+    cloth_catch)."""
     batched = jax.jit(jax.vmap(fn))
 
-    def apply(*arrays: np.ndarray) -> np.ndarray:
-        n = len(arrays[0])
-        pad = -n % CHUNK
-        padded = [np.pad(a, [(0, pad)] + [(0, 0)] * (a.ndim - 1), mode="edge") for a in arrays]
-        parts = [batched(*(a[s : s + CHUNK] for a in padded)) for s in range(0, n + pad, CHUNK)]
+    def apply(n: int, *padded: np.ndarray) -> np.ndarray:
+        parts = [batched(*(a[s : s + CHUNK] for a in padded)) for s in range(0, len(padded[0]), CHUNK)]
         return np.concatenate([np.asarray(p) for p in parts])[:n]
 
     return apply
@@ -107,8 +111,9 @@ class ElasticEnergy:
         self.mesh = mesh
         self.faces = mesh.faces
         self.hinges = mesh.hinges
-        self._Dm_inv = mesh.Dm_inv
-        self._area = mesh.rest_area
+        self._faces = _padded(self.faces)
+        self._membrane = (_padded(mesh.Dm_inv), _padded(mesh.rest_area))
+        self._hinges = _padded(self.hinges) if len(self.hinges) else self.hinges
         A = mesh.rest_area[mesh.hinge_faces].sum(axis=1) if len(mesh.hinges) else np.zeros(0)
         e = (
             mesh.vertices[mesh.hinges[:, 1]] - mesh.vertices[mesh.hinges[:, 0]]
@@ -116,31 +121,30 @@ class ElasticEnergy:
             else np.zeros((0, 3))
         )
         self.hinge_weight = 3.0 * np.einsum("ij,ij->i", e, e) / np.maximum(A, 1e-300)
-        self._weight = self.hinge_weight
         self.rest_angle = self.angles(mesh.vertices)
-        self._theta0 = self.rest_angle
+        self._bending = (_padded(self.hinge_weight), _padded(self.rest_angle)) if len(self.hinges) else ()
         self.dofs = [element_dofs(self.faces), element_dofs(self.hinges)]
 
     def angles(self, x: np.ndarray) -> np.ndarray:
         """(H,) [rad] dihedral angle of every hinge at positions x."""
         if len(self.hinges) == 0:
             return np.zeros(0)
-        return _ANGLES(x[self.hinges])
+        return _ANGLES(len(self.hinges), x[self._hinges])
 
     def energies(self, x: np.ndarray) -> tuple[float, float]:
         """(membrane, bending) unit-stiffness energies [m^2], [1] at positions x."""
-        mem = float(np.sum(_MEMBRANE[0](x[self.faces], self._Dm_inv, self._area)))
+        mem = float(np.sum(_MEMBRANE[0](len(self.faces), x[self._faces], *self._membrane)))
         if len(self.hinges) == 0:
             return mem, 0.0
-        return mem, float(np.sum(_BENDING[0](x[self.hinges], self._weight, self._theta0)))
+        return mem, float(np.sum(_BENDING[0](len(self.hinges), x[self._hinges], *self._bending)))
 
     def gradients(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(membrane, bending) unit-stiffness gradients, each (V, 3)."""
         V = len(x)
-        g_mem = _MEMBRANE[1](x[self.faces], self._Dm_inv, self._area).reshape(-1)
+        g_mem = _MEMBRANE[1](len(self.faces), x[self._faces], *self._membrane).reshape(-1)
         out = [np.bincount(self.dofs[0].ravel(), g_mem, minlength=3 * V).reshape(V, 3)]
         if len(self.hinges):
-            g_bend = _BENDING[1](x[self.hinges], self._weight, self._theta0).reshape(-1)
+            g_bend = _BENDING[1](len(self.hinges), x[self._hinges], *self._bending).reshape(-1)
             out.append(np.bincount(self.dofs[1].ravel(), g_bend, minlength=3 * V).reshape(V, 3))
         else:
             out.append(np.zeros((V, 3)))
@@ -148,10 +152,11 @@ class ElasticEnergy:
 
     def hessians(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(membrane (F, 9, 9), bending (H, 12, 12)) unit-stiffness element Hessians."""
-        H_mem = _MEMBRANE[2](x[self.faces], self._Dm_inv, self._area).reshape(len(self.faces), 9, 9)
+        H_mem = _MEMBRANE[2](len(self.faces), x[self._faces], *self._membrane).reshape(len(self.faces), 9, 9)
         if len(self.hinges) == 0:
             return H_mem, np.zeros((0, 12, 12))
-        return H_mem, _BENDING[2](x[self.hinges], self._weight, self._theta0).reshape(len(self.hinges), 12, 12)
+        H_bend = _BENDING[2](len(self.hinges), x[self._hinges], *self._bending)
+        return H_mem, H_bend.reshape(len(self.hinges), 12, 12)
 
 
 def project_psd(H: np.ndarray) -> np.ndarray:
