@@ -10,11 +10,6 @@ that layout, that has been collected, zeroed as a new field would be. Reuse neve
 result: a kernel whose IR differs in anything else (a constant baked into it, another object's
 field, a static loop) is compiled as before. Whoever keeps a field keeps its owner alive.
 
-A collected owner's fields (with their adjoints) are zeroed together, in one kernel launch, when the
-first of them is handed on (``_Returned``): that kernel is compiled once for the set, which the next
-owner of the class hands back again, where zeroing field by field compiled Taichi's fill once per
-field (1,100 fills, 45 s of compiling in the test suite).
-
 Taichi's fields live until ``ti.reset``: ``clear`` forgets them then (``cosim.runtime``).
 """
 
@@ -25,7 +20,6 @@ import weakref
 import taichi as ti
 
 _free: dict[tuple, list] = {}  # layout key -> fields of collected owners
-_returned: dict[int, "_Returned"] = {}  # id of a free field -> the set it came back with, until handed on
 _live: dict[str, int] = {}  # owner class -> owners holding fields now
 _last_collect = [0.0]
 _generation = [0]  # bumped by ``clear``: owners of an earlier Taichi start-up hand nothing back
@@ -56,33 +50,9 @@ def matrix(owner, n: int, m: int, dtype, shape, needs_grad: bool = False):
     return _field(owner, ("matrix", n, m, dtype), shape, needs_grad)
 
 
-class _Returned:
-    """One collected owner's fields and their adjoints, zeroed (``_zero``) when the first is handed on."""
-
-    def __init__(self, held: _Held):
-        self.fields = tuple(f for key, field in held for f in ((field, field.grad) if key[4] else (field,)))
-        self.zeroed = False
-
-    def zero(self) -> None:
-        if not self.zeroed:
-            _zero(self.fields)
-            self.zeroed = True
-
-
-@ti.kernel
-def _zero(fields: ti.template()):
-    for f in ti.static(fields):
-        if ti.static(len(f.shape) == 0):
-            f[None] = ti.zero(f[None])
-        else:
-            for I in ti.grouped(f):
-                f[I] = ti.zero(f[I])
-
-
 def clear() -> None:
     """Forget every field (before ``ti.reset``, which frees them)."""
     _free.clear()
-    _returned.clear()
     _live.clear()
     _generation[0] += 1
 
@@ -112,7 +82,9 @@ def _take(key: tuple):
     if not free:
         return None
     field = free.pop(0)
-    _returned.pop(id(field)).zero()
+    field.fill(0)
+    if key[4]:
+        field.grad.fill(0)
     return field
 
 
@@ -128,7 +100,5 @@ def _release(held: _Held) -> None:
     if held.generation != _generation[0]:
         return  # its fields went with ti.reset
     _live[held.cls] = _live.get(held.cls, 1) - 1
-    returned = _Returned(held)
     for key, field in held:
         _free.setdefault(key, []).append(field)
-        _returned[id(field)] = returned
