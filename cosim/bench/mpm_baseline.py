@@ -125,24 +125,29 @@ def run_baseline_bench(
     out_dir: Path, configs: list[dict], folder: Path, repeat: int, name: str, command: str | None = None
 ) -> int:
     """Measure ``configs`` with the baseline in ``folder`` and with this cosim (``run_comparison``)."""
+    from cosim.bench.report import git_commit
+
     base = baseline_interpreter(folder)
     print(f"baseline: {base.python} importing {base.root}/cosim; current: {current_interpreter().root}")
-    return run_comparison(out_dir, configs, base, "base", repeat, f"{name}_baseline", command)
+    commit = git_commit(base.root)  # the report names the baseline's commit, not only its folder
+    described = f"baseline (commit {commit})" if commit else "baseline"
+    return run_comparison(out_dir, configs, base, "base", repeat, f"{name}_baseline", command, described)
 
 
 def run_comparison(
     out_dir: Path, configs: list[dict], reference: Interpreter, short: str, repeat: int, name: str,
-    command: str | None = None,
+    command: str | None = None, described: str | None = None,
 ) -> int:  # fmt: skip
     """Measure ``configs`` with ``reference`` and with this cosim, interleaved; print and write
     ``out_dir/<name>.csv`` (medians, ratios), ``<name>.md`` (the same, headed by ``command``, the date
-    and the hardware) and ``<name>_runs.csv`` (every run). ``short``: the reference in column headers."""
+    and the hardware) and ``<name>_runs.csv`` (every run). ``short``: the reference in column headers;
+    ``described``: the reference in the report's sentence (default its label)."""
     from cosim.hardware import hardware_line
 
     runs = interleaved_runs(configs, [reference, current_interpreter()], repeat)
     rows = medians(runs, reference.label)
     columns = table(short)
-    what = f"Current / {reference.label}: medians of {repeat} interleaved runs per version, rates in M/s"
+    what = f"Current / {described or reference.label}: medians of {repeat} interleaved runs per version, rates in M/s"
     print(f"\n{what}, on {hardware_line()}")
     print_table(rows, columns)
     write_csv(out_dir / f"{name}.csv", rows)
