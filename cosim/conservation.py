@@ -64,6 +64,7 @@ class Conservation:
 
     def __init__(self, engine, gravity, domain, share: float = MARGIN, others: dict | None = None):
         self.engine = engine
+        engine.survey_energies = True  # read every step: summed in the survey's pass (``MPMEngine.energies``)
         self.others = dict(others or {})  # {name: engine declaring "energy"}, in the budget besides the MPM
         self.work = 0.0
         self.excess = None

@@ -220,3 +220,27 @@ def test_a_towel_lifted_by_its_corners_gains_the_work_its_prescribed_vertices_do
         work += towel.external_work(record)
     gain = towel.energy_and_mass()[0] - e0
     assert gain > 0.0 and gain <= work <= 1.1 * gain, (gain, work)
+
+
+def test_the_survey_sums_the_energies_the_meter_does_and_forgets_them_with_the_moduli():
+    """The runner's budget reads the energies every step, so the survey sums them in its own pass over the
+    particles: the meter's sums from its pass alone, to 1e-12 (the two compiled kernels may contract the
+    same arithmetic differently). Changing E changes the strain energy (linear in E at fixed deformation,
+    so doubling E doubles it): sums kept from before the change would not."""
+    from cosim.engines.mpm_energy import TERMS
+
+    bodies = [block((0.5, 0.5), (0.4, -0.2))]
+    bodies[0]["material"]["E"] = 4e3
+    sim = build_system(make_scene(mpm={"grid": {"cells": 32}, "gravity": [0.0, -9.81], "bodies": bodies}))
+    engine = sim.mpm
+    sim.step()
+    state = dict(engine.state())
+    n = len(state["F"])
+    state["F"] = np.eye(2) + 0.1 * np.random.default_rng(0).standard_normal((n, 2, 2))
+    engine.set_state(state)
+    surveyed = engine.energies()
+    alone = engine._energy_meter.body_sums(engine.slot)[0]
+    np.testing.assert_allclose([surveyed["block"][k] for k in TERMS], alone, rtol=1e-12, atol=0)
+    assert surveyed["block"]["strain"] > 1e-3 * surveyed["block"]["kinetic"]
+    engine.set_parameters({"E": np.array([8e3])})
+    assert engine.energies()["block"]["strain"] == pytest.approx(2 * surveyed["block"]["strain"], rel=1e-12)

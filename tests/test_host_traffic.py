@@ -33,8 +33,8 @@ def counting_launches():
 
 def test_a_macro_step_hands_the_device_the_same_few_host_arrays_whatever_its_substeps():
     """shake_container_2d at 8 and at 16 fixed substeps a frame: the same host arrays a step (boundary
-    states, reactions, survey, energies, the tunnelling check's poses and counts), and 8 launches more,
-    one per extra substep, none of which takes a host array."""
+    states, reactions, the survey with the energies, the tunnelling check's poses and counts), and 8
+    launches more, one per extra substep, none of which takes a host array."""
     per_step = {}
     for substeps in (8, 16):
         scene = load_scene(
@@ -46,7 +46,7 @@ def test_a_macro_step_hands_the_device_the_same_few_host_arrays_whatever_its_sub
             for _ in range(4):
                 sim.step()
         per_step[substeps] = {key: count / 4 for key, count in tally.items()}
-    assert per_step[16]["arrays"] == per_step[8]["arrays"] <= 6, per_step
+    assert per_step[16]["arrays"] == per_step[8]["arrays"] <= 5, per_step
     assert per_step[16]["launches"] - per_step[8]["launches"] == 8, per_step
 
 

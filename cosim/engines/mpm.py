@@ -78,6 +78,8 @@ class MPMEngine(MPMAdjointKernels):
         self.boundaries: dict = {}  # name -> boundary source
         self._known_state = None  # the state the last step returned, while it is still the current one
         self._known_health = None  # the survey of the current state, once made
+        self._known_energy = None  # its energy sums per body, when the survey took them (``survey_energies``)
+        self.survey_energies = False  # the survey also sums the energies (set by whoever reads them every step)
         self._views: list = []  # weak references to the SlotState views handed out
         self._previous_start = -1  # forward only: the slot the last step started from
         self.state_version = 0  # changes whenever the current state does (``_forget``)
@@ -153,13 +155,17 @@ class MPMEngine(MPMAdjointKernels):
         out-of-grid counts, and the first substep of the last step that left a NaN or inf
         (``cosim.engines.mpm_watch``): surveyed on the device once per state, a few numbers read."""
         if self._known_health is None:
-            self._known_health = self.watch.survey(self._slot)
+            meter = self._energy_meter if self.survey_energies else None
+            self._known_health, self._known_energy = self.watch.survey(self._slot, meter)
         return self._known_health
 
     def energies(self) -> dict[str, dict[str, float]]:
         """Per body name: the current particles' kinetic, gravitational, strain and total energy [J] and
-        volume sum V0 det F [m^3, 2D: m^2] (``cosim.engines.mpm_energy``: summed on the device)."""
-        sums = self._energy_meter.body_sums(self._slot)
+        volume sum V0 det F [m^3, 2D: m^2] (``cosim.engines.mpm_energy``: summed on the device; with
+        ``survey_energies`` in the survey's pass over the particles)."""
+        if self.survey_energies:
+            self.health()
+        sums = self._known_energy if self._known_energy is not None else self._energy_meter.body_sums(self._slot)
         out = {}
         for body, row in zip(self.bodies, sums):
             terms = {k: float(v) for k, v in zip(ENERGY_TERMS, row)}
@@ -204,6 +210,7 @@ class MPMEngine(MPMAdjointKernels):
                 getattr(self, key).from_numpy(self._real(values[key]))
         self._material = self.material()
         self._resident = -1
+        self._known_energy = None  # the strain energy is the moduli's
 
     def material(self) -> dict[str, np.ndarray]:
         """The current per-body E and nu."""
@@ -355,7 +362,7 @@ class MPMEngine(MPMAdjointKernels):
         """The current state changes and slots ``written`` are about to be overwritten: drop what was
         known of the state, and let the ``SlotState`` views of those slots that are still held read
         their keys first."""
-        self._known_state = self._known_health = None
+        self._known_state = self._known_health = self._known_energy = None
         self.state_version += 1
         for ref in self._views:
             view = ref()

@@ -47,21 +47,28 @@ class EnergyMeter:
         ti.loop_config(serialize=e.serial_particle_loops)
         for c in range(self.chunks.count[None]):
             b = self.chunks.table[c, 2]
-            m, vol = e.p_mass[b], e.p_vol[b]
             sums = ti.Vector.zero(ti.f64, 4)
             for p in range(self.chunks.table[c, 0], self.chunks.table[c, 1]):
-                F = e.F[slot, p]
-                terms = ti.Vector(
-                    [
-                        0.5 * m * e.v[slot, p].norm_sqr(),
-                        -m * e.gravity.dot(e.x[slot, p]),
-                        vol * self.strain_density(b, F),
-                        vol * F.determinant(),
-                    ]
-                )
-                sums += ti.cast(terms, ti.f64)
+                sums += self.particle_terms(slot, b, p)
             for k in ti.static(range(4)):
                 out[c, k] = sums[k]
+
+    @ti.func
+    def particle_terms(self, slot, b, p):
+        """The ``TERMS`` of particle p of body b in ``slot``, float64 (summed per chunk here and, when the
+        engine surveys its energies, in the survey's pass: ``cosim.engines.mpm_watch``)."""
+        e = self.engine
+        m, vol = e.p_mass[b], e.p_vol[b]
+        F = e.F[slot, p]
+        terms = ti.Vector(
+            [
+                0.5 * m * e.v[slot, p].norm_sqr(),
+                -m * e.gravity.dot(e.x[slot, p]),
+                vol * self.strain_density(b, F),
+                vol * F.determinant(),
+            ]
+        )
+        return ti.cast(terms, ti.f64)
 
     @ti.kernel
     def _chunk_control_work(self, slot: ti.i32, out: ti.types.ndarray()):
@@ -87,6 +94,10 @@ class EnergyMeter:
         """(bodies, 4) float64: per body the ``TERMS`` of the particles in ``slot``."""
         out = np.zeros((len(self.chunks.host), len(TERMS)))
         self._chunk_sums(slot, out)
+        return self.by_body(out)
+
+    def by_body(self, chunk_sums: np.ndarray) -> np.ndarray:
+        """(bodies, 4): the per-chunk ``TERMS`` (chunks, 4) summed per body."""
         sums = np.zeros((len(self.engine.bodies), len(TERMS)))
-        np.add.at(sums, self.chunks.host[:, 2], out)
+        np.add.at(sums, self.chunks.host[:, 2], chunk_sums)
         return sums

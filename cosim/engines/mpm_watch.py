@@ -119,15 +119,19 @@ class ParticleWatch:
             ti.atomic_min(self.first[self.engine.body_id[p]], s - 1 if non_finite(x.sum() + F.sum()) else s)
 
     @ti.kernel
-    def _survey(self, slot: ti.i32, out: ti.types.ndarray()):
+    def _survey(self, slot: ti.i32, out: ti.types.ndarray(), meters: ti.template()):
         """Per chunk c (parallel), into ``out[c]``: max |v|, particles with a non-finite x, v, C, F, particles
-        outside and its body's first bad substep; then the first bad substeps are reset."""
+        outside and its body's first bad substep, then (with an energy meter: ``meters`` holds none or one)
+        its energy terms; then the first bad substeps are reset."""
         e = self.engine
         ti.loop_config(serialize=e.serial_particle_loops)
         for c in range(self.chunks.count[None]):
             peak, outside = 0.0, 0
             bad = ti.Vector.zero(ti.i32, 4)
+            energy = ti.Vector.zero(ti.f64, 4)
             for p in range(self.chunks.table[c, 0], self.chunks.table[c, 1]):
+                for meter in ti.static(meters):
+                    energy += meter.particle_terms(slot, self.chunks.table[c, 2], p)
                 x, v = e.x[slot, p], e.v[slot, p]
                 peak = ti.max(peak, ti.abs(v).max())
                 sums = ti.Vector([x.sum(), v.sum(), e.C[slot, p].sum(), e.F[slot, p].sum()])
@@ -142,23 +146,26 @@ class ParticleWatch:
                 out[c, 1 + k] = bad[k]
             out[c, 5] = outside
             out[c, 6] = self.first[self.chunks.table[c, 2]]
+            for k in ti.static(range(4 * len(meters))):
+                out[c, 7 + k] = energy[k]
         ti.loop_config(serialize=True)  # a few bodies: a thread-pool dispatch would cost more (arch)
         for b in range(self.n_bodies):
             self.first[b] = NONE
 
-    def survey(self, slot: int) -> dict[str, BodyHealth]:
-        """{body name: its ``BodyHealth``} for the particles in ``slot``, with the first bad substep of the
-        substeps since the last survey; resets that."""
+    def survey(self, slot: int, meter=None) -> tuple[dict[str, BodyHealth], np.ndarray | None]:
+        """({body name: its ``BodyHealth``} for the particles in ``slot``, with the first bad substep of the
+        substeps since the last survey (reset by it); with an ``EnergyMeter`` its ``body_sums`` of the slot,
+        taken in the same pass (a launch and a host array less a step), else None)."""
         body = self.chunks.host[:, 2]
-        out = np.zeros((len(body), 7))
-        self._survey(slot, out)
+        out = np.zeros((len(body), 7 if meter is None else 11))
+        self._survey(slot, out, () if meter is None else (meter,))
         first = np.full(self.n_bodies, NONE)
         first[body] = out[:, 6]  # each of a body's chunks holds its first bad substep
         peak = np.zeros(self.n_bodies)
         np.maximum.at(peak, body, out[:, 0])
         counts = np.zeros((self.n_bodies, 5))
         np.add.at(counts, body, out[:, 1:6])
-        return {
+        health = {
             body.name: BodyHealth(
                 speed=float(peak[b]),
                 non_finite={k: int(n) for k, n in zip(KEYS, counts[b, :4])},
@@ -167,3 +174,4 @@ class ParticleWatch:
             )
             for b, body in enumerate(self.engine.bodies)
         }
+        return health, (None if meter is None else meter.by_body(out[:, 7:]))
