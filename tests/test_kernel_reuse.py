@@ -37,9 +37,9 @@ def test_another_particle_count_in_the_bucket_reuses_the_compiled_kernels(tmp_pa
     # particles fall in the 896 one (the code before the buckets compiled 30 new kernels for 1,313)
     cache = tmp_path / "kernels"
     first = kernels_after_run(cache, 0.17)
-    assert first > 20  # the engine, the forecast contact and the ring's boundary were compiled and cached
+    assert first > 15  # the engine, the forecast contact and the ring's boundary were compiled and cached
     assert kernels_after_run(cache, 0.16) == first
-    assert kernels_after_run(cache, 0.125) > first + 20
+    assert kernels_after_run(cache, 0.125) > first + 15  # the engine and its hooks, for the new bucket
 
 
 REBUILD = """
@@ -76,7 +76,7 @@ def test_an_engine_built_again_in_the_process_compiles_nothing_new(tmp_path):
     does, plus at most one kernel per field and per adjoint field (the fill that zeroes it when it is first handed on).
     Without the pool every build compiled its own set."""
     once, fields = kernels_compiled(tmp_path / "once", 1, "elastic_bounce_2d")
-    assert once > 30  # the MPM forward, its adjoint, the NaN watch and the energy sums
+    assert once > 25  # the MPM forward, its adjoint, the NaN watch with the energy sums
     thrice, _ = kernels_compiled(tmp_path / "thrice", 3, "elastic_bounce_2d")
     assert thrice <= once + fields, (once, fields, thrice)
 

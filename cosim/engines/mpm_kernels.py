@@ -104,16 +104,14 @@ class MPMKernels(StencilFunctions, SlotIO, ParticleBins, P2GKernels):
             self.control = field_pool.vector(self, d, float, shape=n, needs_grad=grad)
 
         self.real = np.float64 if self.x.dtype == ti.f64 else np.float32
-        self.E.from_numpy(self._real([b.E for b in bodies]))
-        self.nu.from_numpy(self._real([b.nu for b in bodies]))
-        self.yield_stress.from_numpy(self._real([min(b.yield_stress, 1e30) for b in bodies]))
-        self.viscosity.from_numpy(self._real([b.viscosity for b in bodies]))
-        self.p_mass.from_numpy(self._real([b.particle_mass for b in bodies]))
-        self.p_vol.from_numpy(self._real([b.particle_volume for b in bodies]))
-        self.p_radius.from_numpy(self._real([0.5 * b.particle_volume ** (1.0 / d) for b in bodies]))
-        self.p_liquid.from_numpy(np.array([b.material == "liquid" for b in bodies], dtype=np.int32))
+        constants = [
+            [b.E, b.nu, min(b.yield_stress, 1e30), b.viscosity, b.particle_mass, b.particle_volume]
+            + [0.5 * b.particle_volume ** (1.0 / d)]
+            for b in bodies
+        ]
+        flags = [[b.material == "liquid", *r] for b, r in zip(bodies, self.ranges)]
+        self._write_bodies(self._real(constants), np.array(flags, dtype=np.int32))
         self.count[None] = self.n_particles
-        self.body_range.from_numpy(np.array(self.ranges, dtype=np.int32))
         self.fuse_substeps = True  # a substep in one launch where it can be (``_fused``)
         self.mass = np.concatenate([np.full(b.n, b.particle_mass) for b in bodies])
         self.body_id.from_numpy(
@@ -216,6 +214,18 @@ class MPMKernels(StencilFunctions, SlotIO, ParticleBins, P2GKernels):
     def velocity(self, g, I):
         """Grid velocity G2P gathers at node I of grid copy g (a grid hook may supply its own)."""
         return self.grid_v[g, I]
+
+    @ti.kernel
+    def _write_bodies(self, constants: ti.types.ndarray(), flags: ti.types.ndarray()):
+        """Each body's constants in one launch (a ``from_numpy`` per field compiled a kernel per field):
+        ``constants[b]`` E, nu, yield stress, viscosity, particle mass, volume and radius in the engine's
+        precision; ``flags[b]`` the liquid flag and the particle range [start, end)."""
+        ti.loop_config(serialize=True)
+        for b in range(constants.shape[0]):
+            self.E[b], self.nu[b], self.yield_stress[b] = constants[b, 0], constants[b, 1], constants[b, 2]
+            self.viscosity[b], self.p_mass[b], self.p_vol[b] = constants[b, 3], constants[b, 4], constants[b, 5]
+            self.p_radius[b], self.p_liquid[b] = constants[b, 6], flags[b, 0]
+            self.body_range[b] = ti.Vector([flags[b, 1], flags[b, 2]])
 
     @ti.kernel
     def _grid_update(self, g: ti.i32, dt: float, mass_floor: float):
