@@ -108,15 +108,30 @@ class PenetrationTracer:
     # ------------------------------------------------------------ host
     def set_state(self, tracking: dict | None) -> None:
         """Start from ``tracking`` {face, side, inside} (N,) int, or fresh (no particle near the sheet)."""
-        N = self.engine.n_particles
-        fresh = {"face": np.full(N, -1, np.int32), "side": np.zeros(N, np.int32), "inside": np.zeros(N, np.int32)}
-        tracking = fresh if tracking is None else tracking
-        for key in TRACKING_KEYS:
-            getattr(self, key).from_numpy(self.engine.padded(np.asarray(tracking[key], dtype=np.int32)))
+        packed = np.zeros((self.engine.n_particles, len(TRACKING_KEYS)), dtype=np.int32)
+        if tracking is None:
+            packed[:, 0] = -1  # no face
+        else:
+            for i, key in enumerate(TRACKING_KEYS):
+                packed[:, i] = tracking[key]
+        self._tracking_io(packed, True)
 
     def state(self) -> dict[str, np.ndarray]:
-        N = self.engine.n_particles
-        return {key: getattr(self, key).to_numpy()[:N].astype(np.int32) for key in TRACKING_KEYS}
+        packed = np.empty((self.engine.n_particles, len(TRACKING_KEYS)), dtype=np.int32)
+        self._tracking_io(packed, False)
+        return {key: packed[:, i].copy() for i, key in enumerate(TRACKING_KEYS)}
+
+    @ti.kernel
+    def _tracking_io(self, packed: ti.types.ndarray(), write: ti.template()):
+        """The tracking state to (``write``) or from the columns of ``packed`` (N, 3): face, side, inside. One
+        launch and one host array each way a macro step, where a ``from_numpy`` / ``to_numpy`` per key took three
+        (and compiled a kernel per field)."""
+        ti.loop_config(serialize=self.engine.serial_particle_loops)
+        for p in range(self.engine.count[None]):
+            if ti.static(write):
+                self.face[p], self.side[p], self.inside[p] = packed[p, 0], packed[p, 1], packed[p, 2]
+            else:
+                packed[p, 0], packed[p, 1], packed[p, 2] = self.face[p], self.side[p], self.inside[p]
 
     def mesh_moved(self, verts: np.ndarray) -> None:
         """The mesh (already in ``query``) has new positions ``verts``: refresh its normals and box."""
