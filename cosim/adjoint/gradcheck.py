@@ -71,8 +71,8 @@ def check_gradients(
     the direction is a random one of unit RMS per entry times the scale, the
     step ``rel_step`` along it, so every entry is perturbed by a comparable
     relative amount. A parameter of one entry (one body's E) has one direction up to sign, which
-    would only repeat the same rollouts: it is checked along one. Run in float64: the truncation error is O(eps^2) and the round-off
-    O(1e-16 |L| / eps); when the loss changes by less than 1e-10 |L| (a weak
+    would only repeat the same rollouts: it is checked along one. Run in float64: the truncation
+    error is O(eps^2) and the round-off O(1e-16 |L| / eps); when the loss changes by less than 1e-10 |L| (a weak
     parameter such as E) the step grows tenfold, at most three times, so the
     round-off stays below ~1e-6 relative. Growing further is not safe: contact
     models switch at distance thresholds, and a large step straddles such a

@@ -13,9 +13,9 @@ point x + dt v asks for its particle) or ``NODE`` for a grid node at x. Rigid bo
 a cloth needs it, since which side of a sheet is legal is a per-particle state that
 penetration tracing carries across steps. ``NODE`` is a Python int and particle indices are
 Taichi expressions, so a source that takes p as a ``ti.template()`` tells the two apart when the
-kernel compiles (``at_node``) and compiles only the path its caller takes. A source may define ``before_substep(src, s)``
-(host): the MPM engine calls it before the particle hooks of substep s (particles in
-slot ``src``), to run discrete per-particle work such as nearest-face queries and
+kernel compiles (``at_node``) and compiles only the path its caller takes. A source may define
+``before_substep(src, s)`` (host): the MPM engine calls it before the particle hooks of substep s
+(particles in slot ``src``), to run discrete per-particle work such as nearest-face queries and
 tracing; if it also computes something differentiable there, it defines
 ``before_substep_grad(src, s)``, which the engine calls at the end of substep s's adjoint.
 

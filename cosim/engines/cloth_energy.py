@@ -125,6 +125,14 @@ class ElasticEnergy:
         self._bending = (_padded(self.hinge_weight), _padded(self.rest_angle)) if len(self.hinges) else ()
         self.dofs = [element_dofs(self.faces), element_dofs(self.hinges)]
 
+    def _per_face(self, fn, x: np.ndarray) -> np.ndarray:
+        """A ``_chunked`` membrane function at positions x, one row per face."""
+        return fn(len(self.faces), x[self._faces], *self._membrane)
+
+    def _per_hinge(self, fn, x: np.ndarray) -> np.ndarray:
+        """A ``_chunked`` bending function at positions x, one row per hinge."""
+        return fn(len(self.hinges), x[self._hinges], *self._bending)
+
     def angles(self, x: np.ndarray) -> np.ndarray:
         """(H,) [rad] dihedral angle of every hinge at positions x."""
         if len(self.hinges) == 0:
@@ -133,18 +141,18 @@ class ElasticEnergy:
 
     def energies(self, x: np.ndarray) -> tuple[float, float]:
         """(membrane, bending) unit-stiffness energies [m^2], [1] at positions x."""
-        mem = float(np.sum(_MEMBRANE[0](len(self.faces), x[self._faces], *self._membrane)))
+        mem = float(np.sum(self._per_face(_MEMBRANE[0], x)))
         if len(self.hinges) == 0:
             return mem, 0.0
-        return mem, float(np.sum(_BENDING[0](len(self.hinges), x[self._hinges], *self._bending)))
+        return mem, float(np.sum(self._per_hinge(_BENDING[0], x)))
 
     def gradients(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(membrane, bending) unit-stiffness gradients, each (V, 3)."""
         V = len(x)
-        g_mem = _MEMBRANE[1](len(self.faces), x[self._faces], *self._membrane).reshape(-1)
+        g_mem = self._per_face(_MEMBRANE[1], x).reshape(-1)
         out = [np.bincount(self.dofs[0].ravel(), g_mem, minlength=3 * V).reshape(V, 3)]
         if len(self.hinges):
-            g_bend = _BENDING[1](len(self.hinges), x[self._hinges], *self._bending).reshape(-1)
+            g_bend = self._per_hinge(_BENDING[1], x).reshape(-1)
             out.append(np.bincount(self.dofs[1].ravel(), g_bend, minlength=3 * V).reshape(V, 3))
         else:
             out.append(np.zeros((V, 3)))
@@ -152,11 +160,10 @@ class ElasticEnergy:
 
     def hessians(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(membrane (F, 9, 9), bending (H, 12, 12)) unit-stiffness element Hessians."""
-        H_mem = _MEMBRANE[2](len(self.faces), x[self._faces], *self._membrane).reshape(len(self.faces), 9, 9)
+        H_mem = self._per_face(_MEMBRANE[2], x).reshape(len(self.faces), 9, 9)
         if len(self.hinges) == 0:
             return H_mem, np.zeros((0, 12, 12))
-        H_bend = _BENDING[2](len(self.hinges), x[self._hinges], *self._bending)
-        return H_mem, H_bend.reshape(len(self.hinges), 12, 12)
+        return H_mem, self._per_hinge(_BENDING[2], x).reshape(len(self.hinges), 12, 12)
 
 
 def project_psd(H: np.ndarray) -> np.ndarray:

@@ -74,8 +74,7 @@ class CheckpointStore:
 
     @property
     def shapes(self) -> dict[str, tuple[int, ...]]:
-        n, d = self.engine.n_particles, self.engine.dim
-        return {"x": (n, d), "v": (n, d), "C": (n, d, d), "F": (n, d, d)}
+        return self.engine.state_shapes
 
     @property
     def state_bytes(self) -> int:

@@ -54,8 +54,8 @@ class SlotIO:
         aF: ti.types.ndarray(),
         to_arrays: ti.template(),
     ):
-        """Copy slot ``slot`` of x, v, C, F (or their adjoints) into device arrays (n, d) and (n, d, d)
-        (``to_arrays``), or the arrays into the slot."""
+        """Copy slot ``slot`` of x, v, C, F (or their adjoints) into arrays (n, d) and (n, d, d)
+        (``to_arrays``), or the arrays into the slot: device arrays (checkpoints) or host ones."""
         ti.loop_config(serialize=self.serial_particle_loops)
         for p in range(self.count[None]):
             for i in ti.static(range(self.dim)):
@@ -98,11 +98,16 @@ class SlotIO:
         self._read_slot(fld, slot, out)
         return out.astype(np.float64)
 
+    @property
+    def state_shapes(self) -> dict[str, tuple[int, ...]]:
+        """The shapes of one state's arrays by ``STATE_KEYS``: x, v (n, d), C, F (n, d, d)."""
+        n, d = self.n_particles, self.dim
+        return {"x": (n, d), "v": (n, d), "C": (n, d, d), "F": (n, d, d)}
+
     def _get_state(self, fields: tuple, slot: int) -> dict[str, np.ndarray]:
         """Slot ``slot`` of x, v, C, F (or their adjoints: ``fields``) on the host, float64, in one launch of
-        ``_copy_state``: the kernel the device checkpoints compile anyway (host arrays in the engine's
-        precision key it the same), where a read per field compiled a kernel per field."""
-        arrays = self._state_arrays()
+        ``_copy_state``, where a read per field compiled a kernel per field and launched four."""
+        arrays = {k: np.empty(shape, dtype=self.real) for k, shape in self.state_shapes.items()}
         self._copy_state(*fields, slot, *arrays.values(), True)
         return {k: a.astype(np.float64) for k, a in arrays.items()}
 
@@ -110,7 +115,3 @@ class SlotIO:
         """Write host arrays ``values`` (by ``STATE_KEYS``) into slot ``slot`` of ``fields`` (one launch)."""
         arrays = {k: np.ascontiguousarray(values[k], dtype=self.real) for k in STATE_KEYS}
         self._copy_state(*fields, slot, *arrays.values(), False)
-
-    def _state_arrays(self) -> dict[str, np.ndarray]:
-        n, d = self.n_particles, self.dim
-        return {k: np.empty((n, d) if k in ("x", "v") else (n, d, d), dtype=self.real) for k in STATE_KEYS}
