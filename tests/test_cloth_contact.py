@@ -8,6 +8,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import taichi as ti
+from conftest import counting_launches
 
 from cosim.couplers.cloth_boundary import ClothBoundary
 from cosim.couplers.cloth_mesh_query import MeshQuery
@@ -203,6 +204,7 @@ def trace_path(src, engine, verts, path, tracking=None):
         s = 0 if k == 0 else 1
         inside.append(int(src.tracer.inside_s.to_numpy()[s % src.slots, 0]))
         dist.append(particle_distances(src, engine, s)[0])
+    src.tracer.check()  # what the traces met (a macro step's reactions check it)
     return np.array(inside), np.array(dist)
 
 
@@ -232,7 +234,7 @@ def test_a_step_longer_than_the_band_stops_the_run(one_particle_sheet):
     """Crossing by more than the band in one move cannot be traced: a clear error naming the fix."""
     engine, src, verts = one_particle_sheet
     path = np.array([[0.5, SHEET_Y + 0.3 * src.band, 0.5], [0.5, SHEET_Y - 0.8 * src.band, 0.5]])
-    with pytest.raises(ClothTracingError, match=r"particle 0 .*smaller substeps"):
+    with pytest.raises(ClothTracingError, match=r"particle 0 .*before substep 1;.*smaller substeps"):
         trace_path(src, engine, verts, path)
 
 
@@ -243,7 +245,8 @@ def test_a_jump_out_of_the_neighbourhood_stops_the_run():
     verts, faces = flat_sheet(25, 0.25, 0.75)  # faces 2 cm across, band 6.25 cm
     src = ClothBoundary(engine, verts, faces, radius=1e-3)
     path = np.array([[0.4, SHEET_Y + 0.01, 0.5], [0.4 + 0.9 * src.band, SHEET_Y + 0.01, 0.5]])
-    with pytest.raises(ClothTracingError, match=r"particle 0 .*outside the neighbourhood.*search radius"):
+    lost = r"particle 0 .*outside the neighbourhood.* at substep 1:.*search radius"
+    with pytest.raises(ClothTracingError, match=lost):
         trace_path(src, engine, verts, path)
 
 
@@ -273,6 +276,8 @@ def test_moebius_strip_keeps_its_side_across_the_seam_and_flips_once_through_it(
 
 # ---------------------------------------------------------------------------- with the MPM
 MODELS = ["grid", "particle", "forecast"]
+# a coupled step's host arrays: the cloth's states in (2), reactions and tracing errors out (2), the survey (1)
+ARRAYS_PER_STEP = 5
 
 
 def cloth_scene(model, positions, velocity, gravity=(0.0, -9.81, 0.0), stiffness=400.0):
@@ -359,6 +364,31 @@ def test_a_step_replays_bit_for_bit_from_its_boundary_input():
     assert np.array_equal(first["state"]["x"], again["state"]["x"])
     for key in tracked:
         assert np.array_equal(tracked[key], again["reactions"][coupler.source]["tracking"][key])
+
+
+def test_a_coupled_step_hands_the_device_the_same_host_arrays_whatever_its_substeps():
+    """What the traces meet stays on the device until the macro step's end (on a GPU every read between
+    substeps is a wait): a coupled step of 2 and of 6 substeps takes and returns the same host arrays
+    (the cloth's states in, reactions and tracing errors out in one launch each), and a substep more only
+    launches kernels."""
+    per_step = {}
+    for K in (2, 6):
+        engine, _src, coupler = scene("forecast", block(SHEET_Y - 0.005), (0.0, -1.5, 0.0))
+        run(engine, coupler, 1, K, 5e-4)  # compiles
+        with counting_launches() as tally:
+            run(engine, coupler, 2, K, 5e-4)
+        per_step[K] = {key: count / 2 for key, count in tally.items()}
+    assert per_step[6]["arrays"] == per_step[2]["arrays"] <= ARRAYS_PER_STEP, per_step
+    assert per_step[6]["launches"] > per_step[2]["launches"], per_step
+
+
+def test_a_particle_too_fast_for_tracing_stops_the_macro_step():
+    """A block thrown at the sheet faster than tracing can follow (|v| dt above the band): the coupled
+    step raises at its end, naming the substep where it began."""
+    engine, src, coupler = scene("forecast", block(SHEET_Y + 0.01), (0.0, -40.0, 0.0))
+    assert 40.0 * 2e-3 > src.band
+    with pytest.raises(ClothTracingError, match=r"particle \d+ .*before substep 1;.*smaller substeps"):
+        run(engine, coupler, 1, 2, 2e-3)
 
 
 def wrong_side(x: np.ndarray, depth: float) -> int:

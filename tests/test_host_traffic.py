@@ -2,33 +2,11 @@
 (on a GPU every host array a kernel takes is a copy and a wait), packed side by side (boundary states in,
 reactions out, the tunnelling check's poses) and unpacked on the device where they belong."""
 
-from contextlib import contextmanager
-
 import numpy as np
-from conftest import SCENES, make_scene
-from taichi.lang import kernel_impl
+from conftest import SCENES, counting_launches, make_scene
 
 from cosim.scene import load_scene
 from cosim.scene.build import build_system
-
-
-@contextmanager
-def counting_launches():
-    """Counts Taichi kernel launches and the host (numpy) arrays handed to them while inside:
-    yields {"launches": n, "arrays": m}."""
-    original = kernel_impl.Kernel.__call__
-    tally = {"launches": 0, "arrays": 0}
-
-    def counted(self, *args, **kwargs):
-        tally["launches"] += 1
-        tally["arrays"] += sum(isinstance(a, np.ndarray) for a in args)
-        return original(self, *args, **kwargs)
-
-    kernel_impl.Kernel.__call__ = counted
-    try:
-        yield tally
-    finally:
-        kernel_impl.Kernel.__call__ = original
 
 
 def test_a_macro_step_hands_the_device_the_same_few_host_arrays_whatever_its_substeps():

@@ -49,7 +49,7 @@ import taichi as ti
 from cosim.couplers.boundary import NODE, at_node
 from cosim.couplers.cloth_mesh_query import INTERIOR, MeshQuery, closest_point_on_triangle
 from cosim.couplers.cloth_topology import build_topology
-from cosim.couplers.cloth_tracing import CANDIDATES, PenetrationTracer
+from cosim.couplers.cloth_tracing import CANDIDATES, ERRORS, TRACKING_KEYS, PenetrationTracer
 from cosim.engines import field_pool
 from cosim.engines.contract import ContactTraits
 from cosim.engines.data_oriented import data_oriented
@@ -304,23 +304,38 @@ class ClothBoundary:
 
     # ------------------------------------------------------------------ the MPM engine's side
     def write(self, states: dict) -> None:
-        """The cloth for this macro step: x (V, 3) [m], v (V, 3) [m/s], tracking (or None); clears the
-        reactions, rebuilds the face hash and queries the grid nodes. The mesh motion is traced before
-        the first substep (``before_substep(src, 0)``), when the particles' slot is known."""
+        """The cloth for this macro step: x (V, 3) [m], v (V, 3) [m/s], handover (V, 3) [m/s] or None, tracking
+        (or None); clears the reactions, rebuilds the face hash and queries the grid nodes. One launch takes it
+        all (``_write_step``). The mesh motion is traced before the first substep (``before_substep(src, 0)``),
+        when the particles' slot is known."""
         x = np.asarray(states["x"], dtype=np.float64)
-        self.query.update(x)
-        self.vel.from_numpy(np.asarray(states["v"], dtype=self.real))
-        self.impulse.fill(0)
-        self.tracer.mesh_moved(x)
-        self.tracer.set_state(states.get("tracking"))
+        V = len(x)
+        hashed, inv_h = self.query.packed_hash(x)
+        rows = np.zeros((3 * V + 2, 3), dtype=self.real)  # positions, velocities, handover, the mesh's box
+        rows[:V], rows[V : 2 * V] = x, states["v"]
+        if states.get("handover") is not None:
+            rows[2 * V : 3 * V] = states["handover"]
+        rows[3 * V], rows[3 * V + 1] = x.min(axis=0) - self.query.band, x.max(axis=0) + self.query.band
+        packed = np.concatenate([hashed, self.tracer.packed_tracking(states.get("tracking")).reshape(-1)])
         self._substeps = int(states.get("substeps", 1))
-        self.substeps_now[None] = self._substeps
-        if states.get("handover") is None:
-            self.handover_v.fill(0)
-        else:
-            self.handover_v.from_numpy(np.asarray(states["handover"], dtype=self.real))
+        self._write_step(rows, packed, inv_h, self._substeps)
         if self.queries_nodes:
             self._query_nodes()
+
+    @ti.kernel
+    def _write_step(self, rows: ti.types.ndarray(), packed: ti.types.ndarray(), inv_h: float, substeps: ti.i32):
+        """``write``'s arrays in one launch (on a GPU each is a copy and a wait): ``rows`` (3 V + 2, 3) positions,
+        velocities, handover velocities, the grown box; ``packed`` the face hash, the tracking state."""
+        self.substeps_now[None] = substeps
+        self.query.load(rows, packed, inv_h)
+        V = self.query.n_verts
+        ti.loop_config(serialize=self.query.serial_copies)
+        for v in range(V):
+            self.vel[v] = ti.Vector([rows[V + v, k] for k in ti.static(range(3))])
+            self.handover_v[v] = ti.Vector([rows[2 * V + v, k] for k in ti.static(range(3))])
+            self.impulse[v] = ti.Vector.zero(float, 3)
+            self.contact_mass[v] = 0.0
+        self.tracer.load(rows, 3 * V, packed, self.query.table + 1 + 8 * self.query.n_faces)
 
     def before_substep(self, src: int, s: int) -> None:
         """Trace the particles in slot ``src`` for substep s (s = 0: the mesh moved, the particles not),
@@ -337,16 +352,33 @@ class ClothBoundary:
     def reactions(self, K: int) -> dict:
         """{"impulse": (V, 3) [N s] over the macro step, "tracking": the state after its last substep,
         "mass": (V,) [kg] the material that follows each vertex over the frame (``_contact_mass``; zeros
-        unless the contact model says how much: the forecast model)}."""
+        unless the contact model says how much: the forecast model)}. Raises ``ClothTracingError`` for what
+        the step's traces met, read with the rest in one launch (``_read_step``)."""
         self.tracer.trace(self.engine.slot, K, first=False, record=False)  # the last substep's motion
-        self.contact_mass.fill(0)
         if self.engagement is not None:
             self._contact_mass(K - 1, (K - 1) % self.slots, K)
+        rows = np.empty((self.query.n_verts, 4), dtype=self.real)
+        packed = np.empty(len(ERRORS) + len(TRACKING_KEYS) * self.engine.n_particles, dtype=np.int32)
+        self._read_step(rows, packed)
+        self.tracer.check(packed[: len(ERRORS)], end=K)
         return {
-            "impulse": self.impulse.to_numpy().astype(np.float64),
-            "tracking": self.tracer.state(),
-            "mass": self.contact_mass.to_numpy().astype(np.float64),
+            "impulse": rows[:, :3].astype(np.float64),
+            "tracking": self.tracer.unpacked_tracking(packed[len(ERRORS) :]),
+            "mass": rows[:, 3].astype(np.float64),
         }
+
+    @ti.kernel
+    def _read_step(self, rows: ti.types.ndarray(), packed: ti.types.ndarray()):
+        """``reactions``' arrays in one launch: ``rows`` (V, 4) impulse and added mass, ``packed`` the tracer's
+        ``errors`` then the tracking state."""
+        for i in ti.static(range(len(ERRORS))):
+            packed[i] = self.tracer.errors[i]
+        ti.loop_config(serialize=self.query.serial_copies)
+        for v in range(self.query.n_verts):
+            for k in ti.static(range(3)):
+                rows[v, k] = self.impulse[v][k]
+            rows[v, 3] = self.contact_mass[v]
+        self.tracer.tracking_pass(packed, ti.static(len(ERRORS)), False)
 
     @ti.kernel
     def _contact_mass(self, s: ti.i32, k: ti.i32, K: ti.i32):

@@ -20,6 +20,7 @@ import numpy as np
 import taichi as ti
 
 from cosim.engines import field_pool
+from cosim.engines.arch import current_choices
 from cosim.engines.data_oriented import data_oriented
 
 PRIMES = (73856093, 19349663, 83492791)  # spatial-hash multipliers (Teschner et al. 2003)
@@ -114,15 +115,39 @@ class MeshQuery:
         self.entries = field_pool.scalar(self, ti.i32, shape=8 * F)
         self.inv_h = field_pool.scalar(self, float, shape=())
         self.real = np.float64 if self.verts.dtype == ti.f64 else np.float32
+        # copies of this size run on one thread on a CPU (a thread-pool dispatch costs more), in parallel on a GPU
+        self.serial_copies = current_choices().serial_nodes(self.table + 8 * F)
 
     def update(self, verts: np.ndarray) -> None:
-        """New vertex positions (V, 3) [m]: upload them and rebuild the hash (host)."""
+        """New vertex positions (V, 3) [m]: rebuild the hash (host) and upload both in one launch."""
         verts = np.asarray(verts, dtype=np.float64)
-        h, start, entries = face_hash(verts, self.faces_np, self.band, self.table)
-        self.verts.from_numpy(verts.astype(self.real))
-        self.start.from_numpy(start)
-        self.entries.from_numpy(entries)
-        self.inv_h[None] = 1.0 / h
+        hashed, inv_h = self.packed_hash(verts)
+        self._upload(verts.astype(self.real), hashed, inv_h)
+
+    def packed_hash(self, verts: np.ndarray) -> tuple[np.ndarray, float]:
+        """The face hash at positions ``verts`` (V, 3) [m] as one int32 array (``start`` (table + 1), then
+        ``entries`` (8 F)) and 1 / h [1/m]: what ``load`` takes."""
+        h, start, entries = face_hash(np.asarray(verts, dtype=np.float64), self.faces_np, self.band, self.table)
+        return np.concatenate([start, entries]), 1.0 / h
+
+    @ti.kernel
+    def _upload(self, verts: ti.types.ndarray(), hashed: ti.types.ndarray(), inv_h: float):
+        self.load(verts, hashed, inv_h)
+
+    @ti.func
+    def load(self, rows: ti.template(), hashed: ti.template(), inv_h):
+        """Positions from the first V rows of ``rows`` (>= V, 3) [m] and the hash (``packed_hash``), at a kernel's
+        top level (a caller uploads them with its own arrays in one launch)."""
+        self.inv_h[None] = inv_h
+        ti.loop_config(serialize=self.serial_copies)
+        for v in range(self.n_verts):
+            self.verts[v] = ti.Vector([rows[v, k] for k in ti.static(range(3))])
+        ti.loop_config(serialize=self.serial_copies)
+        for i in range(self.table + 1 + 8 * self.n_faces):
+            if i <= self.table:
+                self.start[i] = hashed[i]
+            else:
+                self.entries[i - self.table - 1] = hashed[i]
 
     @ti.func
     def corners(self, f):

@@ -51,6 +51,9 @@ from cosim.engines.data_oriented import data_oriented
 from cosim.errors import SimulationError
 
 TRACKING_KEYS = ("face", "side", "inside")
+# the ``errors`` entries: particles lost (a jump out of the neighbourhood) and the lowest of them, particles that moved
+# the band or more between traces and the lowest of them, the first substep where each happened
+ERRORS = ("lost", "lost_p", "fast", "fast_p", "lost_s", "fast_s")
 CANDIDATES = 4  # faces blended per particle (ClothBoundary)
 
 
@@ -100,71 +103,100 @@ class PenetrationTracer:
             self, ti.i32, shape=()
         )  # candidates beyond CANDIDATES met so far (diagnostics)
         self.box = field_pool.vector(self, 3, float, shape=2)  # the mesh's bounding box grown by the band
-        self.errors = field_pool.scalar(
-            self, ti.i32, shape=4
-        )  # lost count, first lost particle, fast count, first fast particle
+        # what the traces of the macro step so far met (``ERRORS``), read with the step's results (``check``)
+        self.errors = field_pool.scalar(self, ti.i32, shape=len(ERRORS))
         self.real = query.real
 
     # ------------------------------------------------------------ host
-    def set_state(self, tracking: dict | None) -> None:
-        """Start from ``tracking`` {face, side, inside} (N,) int, or fresh (no particle near the sheet)."""
+    def packed_tracking(self, tracking: dict | None) -> np.ndarray:
+        """``tracking`` {face, side, inside} (N,) int as one (N, 3) int32 array (``tracking_pass``); None: fresh
+        (no particle near the sheet)."""
         packed = np.zeros((self.engine.n_particles, len(TRACKING_KEYS)), dtype=np.int32)
         if tracking is None:
             packed[:, 0] = -1  # no face
         else:
             for i, key in enumerate(TRACKING_KEYS):
                 packed[:, i] = tracking[key]
-        self._tracking_io(packed, True)
+        return packed
+
+    @staticmethod
+    def unpacked_tracking(packed: np.ndarray) -> dict[str, np.ndarray]:
+        """{face, side, inside} (N,) of a packed (N * 3,) or (N, 3) tracking state."""
+        packed = packed.reshape(-1, len(TRACKING_KEYS))
+        return {key: packed[:, i].copy() for i, key in enumerate(TRACKING_KEYS)}
+
+    def set_state(self, tracking: dict | None) -> None:
+        """Start from ``tracking`` {face, side, inside} (N,) int, or fresh (no particle near the sheet)."""
+        self._tracking_io(self.packed_tracking(tracking).reshape(-1), True)
 
     def state(self) -> dict[str, np.ndarray]:
-        packed = np.empty((self.engine.n_particles, len(TRACKING_KEYS)), dtype=np.int32)
+        packed = np.empty(self.engine.n_particles * len(TRACKING_KEYS), dtype=np.int32)
         self._tracking_io(packed, False)
-        return {key: packed[:, i].copy() for i, key in enumerate(TRACKING_KEYS)}
+        return self.unpacked_tracking(packed)
 
     @ti.kernel
     def _tracking_io(self, packed: ti.types.ndarray(), write: ti.template()):
-        """The tracking state to (``write``) or from the columns of ``packed`` (N, 3): face, side, inside. One
-        launch and one host array each way a macro step, where a ``from_numpy`` / ``to_numpy`` per key took three
-        (and compiled a kernel per field)."""
+        self.tracking_pass(packed, 0, write)
+
+    @ti.func
+    def tracking_pass(self, packed: ti.template(), offset, write: ti.template()):
+        """The tracking state to (``write``) or from ``packed`` (flat int32, from ``offset``: face, side, inside of
+        each particle in turn): the host's copy goes in and out with other arrays in one launch each way."""
         ti.loop_config(serialize=self.engine.serial_particle_loops)
         for p in range(self.engine.count[None]):
+            i = offset + 3 * p
             if ti.static(write):
-                self.face[p], self.side[p], self.inside[p] = packed[p, 0], packed[p, 1], packed[p, 2]
+                self.face[p], self.side[p], self.inside[p] = packed[i], packed[i + 1], packed[i + 2]
             else:
-                packed[p, 0], packed[p, 1], packed[p, 2] = self.face[p], self.side[p], self.inside[p]
+                packed[i], packed[i + 1], packed[i + 2] = self.face[p], self.side[p], self.inside[p]
 
-    def mesh_moved(self, verts: np.ndarray) -> None:
-        """The mesh (already in ``query``) has new positions ``verts``: refresh its normals and box."""
-        band = self.query.band
-        self.box.from_numpy(np.stack([verts.min(axis=0) - band, verts.max(axis=0) + band]).astype(self.real))
+    @ti.func
+    def load(self, rows: ti.template(), box_row, packed: ti.template(), offset):
+        """A macro step's start, at a kernel's top level after the mesh's positions (``MeshQuery.load``): the
+        mesh's box grown by the band from ``rows[box_row]`` and ``rows[box_row + 1]`` (lower and upper corner
+        [m]), the tracking state from ``packed`` at ``offset`` (``tracking_pass``), the mesh's normals."""
+        for i in ti.static(range(2)):
+            self.box[i] = ti.Vector([rows[box_row + i, k] for k in ti.static(range(3))])
+        self.tracking_pass(packed, offset, True)
         self._face_normals()
         self._pseudo_normals()
 
     def trace(self, src: int, s: int, first: bool, record: bool) -> None:
-        """Trace the particles in slot ``src``; ``first``: the first observation of a macro step (only the
-        mesh moved); ``record``: keep the result for substep s. Raises ``ClothTracingError``."""
-        self._trace(src, s % self.slots, int(first), int(record))
-        lost, lost_p, fast, fast_p = (int(v) for v in self.errors.to_numpy())
-        where = f"substep {s}" if record else "the end of the macro step"
-        if fast:
+        """Trace the particles in slot ``src`` at substep s (s = K: the end of a macro step of K); ``first``: the
+        first observation of a macro step (only the mesh moved; starts the step's ``errors``); ``record``: keep
+        the result for substep s. What went wrong is kept for ``check`` at the end of the macro step: no read
+        back between substeps (on a GPU a wait for the device)."""
+        self._trace(src, s, s % self.slots, int(first), int(record))
+
+    def check(self, errors: np.ndarray | None = None, end: int | None = None) -> None:
+        """Raise ``ClothTracingError`` if a trace of the macro step so far lost a particle: ``errors`` the
+        ``errors`` field as read with the step's results (read here when None), ``end`` the step's substeps K
+        (a trace at K is the end of the step)."""
+        found = dict(zip(ERRORS, (int(v) for v in (self.errors.to_numpy() if errors is None else errors))))
+
+        def where(s: int) -> str:
+            return "the end of the macro step" if s == end else f"substep {s}"
+
+        if found["fast"]:
             raise ClothTracingError(
-                f"cloth tracing: particle {fast_p} (and {fast - 1} more) moved at least the tracing band "
-                f"{self.query.band:.3g} m near the cloth before {where}; a crossing could go unseen: use smaller "
-                "substeps (|v| dt < band, see max_step_travel) or a larger band"
+                f"cloth tracing: particle {found['fast_p']} (and {found['fast'] - 1} more) moved at least the tracing "
+                f"band {self.query.band:.3g} m near the cloth before {where(found['fast_s'])}; a crossing could go "
+                "unseen: use smaller substeps (|v| dt < band, see max_step_travel) or a larger band"
             )
-        if lost:
-            x = self.engine.x.to_numpy()[src, lost_p]
+        if found["lost"]:
+            p = found["lost_p"]
+            x = self.engine.x.to_numpy()[self.engine.slot, p]
             raise ClothTracingError(
-                f"cloth tracing: particle {lost_p} (and {lost - 1} more) at {np.round(x, 4).tolist()} is nearest "
-                f"to a face outside the neighbourhood of its last face {self.face[lost_p]} at {where}: it moved "
-                f"across the sheet farther than tracing can follow; use smaller substeps or a larger search radius "
-                f"(now {self.neighbour_radius:.3g} m)"
+                f"cloth tracing: particle {p} (and {found['lost'] - 1} more; now at {np.round(x, 4).tolist()}) was "
+                f"nearest to a face outside the neighbourhood of its last face {self.face[p]} at "
+                f"{where(found['lost_s'])}: it moved across the sheet farther than tracing can follow; use smaller "
+                f"substeps or a larger search radius (now {self.neighbour_radius:.3g} m)"
             )
 
     neighbour_radius = 0.0  # [m] set by the owner, for messages
 
     # ------------------------------------------------------------ normals of the current mesh
-    @ti.kernel
+    @ti.func
     def _face_normals(self):
         for f in range(self.query.n_faces):
             a, b, c = self.query.corners(f)
@@ -175,7 +207,7 @@ class PenetrationTracer:
                 u, w = corners[(k + 1) % 3] - corners[k], corners[(k + 2) % 3] - corners[k]
                 self.corner_angle[f, k] = ti.atan2(u.cross(w).norm(), u.dot(w))
 
-    @ti.kernel
+    @ti.func
     def _pseudo_normals(self):
         for f, k in ti.ndrange(self.query.n_faces, 3):
             n = self.face_normal[f]
@@ -239,11 +271,12 @@ class PenetrationTracer:
 
     # ------------------------------------------------------------ the update
     @ti.kernel
-    def _trace(self, src: ti.i32, slot: ti.i32, first: ti.i32, record: ti.i32):
+    def _trace(self, src: ti.i32, s: ti.i32, slot: ti.i32, first: ti.i32, record: ti.i32):
         e = self.engine
         band = self.query.band
-        for i in ti.static(range(2)):  # no error yet (counts 0, first particles past the last)
-            self.errors[2 * i], self.errors[2 * i + 1] = 0, e.count[None]
+        if first:  # no error yet in this macro step (counts 0, first particles and substeps past the last)
+            for i in ti.static(range(2)):
+                self.errors[2 * i], self.errors[2 * i + 1], self.errors[4 + i] = 0, e.count[None], 1 << 30
         ti.loop_config(serialize=e.serial_particle_loops)
         for p in range(e.count[None]):
             x = e.x[src, p]
@@ -256,6 +289,7 @@ class PenetrationTracer:
                 if near and (x - x0).norm_sqr() >= band * band:
                     ti.atomic_add(self.errors[2], 1)
                     ti.atomic_min(self.errors[3], p)
+                    ti.atomic_min(self.errors[5], s)
             self.last_x[p] = x
             f, d2, bary, region = self.query.nearest(x)
             ref, side, inside = self.face[p], 0, 0
@@ -271,6 +305,7 @@ class PenetrationTracer:
                     if flag == 0:  # a jump tracing cannot follow: keep the state, report
                         ti.atomic_add(self.errors[0], 1)
                         ti.atomic_min(self.errors[1], p)
+                        ti.atomic_min(self.errors[4], s)
                         face, side, inside = ref, self.side[p], self.inside[p]
                     else:
                         before = flag * self.side[p]
