@@ -20,7 +20,8 @@
 #   profile  `cosim bench mpm --arch cuda --profile`: Taichi's kernel profiler over the 2M block, each kernel
 #            and each of its parallel loops (what bounds the 2M forward and its backward);
 #   contact  `cosim bench contact --arch cuda --repeat 1` (the paper's contact benchmark: 1100 frames, every
-#            model and wall, the steps after the first timed), then `cosim run scenes/shake_container_2d.yaml
+#            model and wall, the steps after the first timed), its `--profile` (a grid frame's kernels, launches,
+#            host arrays and device tasks: host- or device-bound), then `cosim run scenes/shake_container_2d.yaml
 #            --arch cuda` twice (grid contact; run 2 loads run 1's kernels from the cache): wall_time_s, first_step_s;
 #   peer     with .peers/SoftMAC, `cosim bench mpm --arch cuda --peer softmac=.peers/SoftMAC`: cosim / SoftMAC
 #            on the 30k block in float64, interleaved (SoftMAC's first 3D backward compiles for minutes);
@@ -61,6 +62,8 @@ for step in $steps; do
         if q; then frames=100; fi
         if q; then cosim bench contact --arch "$arch" --repeat 1 --quick --out "$out/contact"
         else cosim bench contact --arch "$arch" --repeat 1 --out "$out/contact"; fi
+        if q; then cosim bench contact --arch "$arch" --profile --quick --out "$out/contact_profile"
+        else cosim bench contact --arch "$arch" --profile --out "$out/contact_profile"; fi
         for run in 1 2; do
             cosim run scenes/shake_container_2d.yaml --arch "$arch" --steps "$frames" --quiet --no-preview --out "$out/shake$run" || break
             python3 -c "import json,sys; m=json.load(open(sys.argv[1])); print('shake_container_2d run', sys.argv[2], {k: m[k] for k in ('steps', 'wall_time_s', 'first_step_s', 'kernel_compile_s', 'substeps_total', 'hardware')})" "$out/shake$run/metrics.json" "$run"

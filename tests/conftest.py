@@ -7,10 +7,8 @@ from __future__ import annotations
 import copy
 import subprocess
 import sys
-from contextlib import contextmanager
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -143,24 +141,3 @@ def check_task_improves(task: str, steps: int, ratio: float, out: Path) -> None:
     assert len(losses) == 3
     assert all(b < a for a, b in pairwise(losses)), losses
     assert losses[-1] < ratio * losses[0], losses
-
-
-@contextmanager
-def counting_launches():
-    """Counts Taichi kernel launches and the host (numpy) arrays handed to them while inside:
-    yields {"launches": n, "arrays": m}."""
-    from taichi.lang import kernel_impl
-
-    original = kernel_impl.Kernel.__call__
-    tally = {"launches": 0, "arrays": 0}
-
-    def counted(self, *args, **kwargs):
-        tally["launches"] += 1
-        tally["arrays"] += sum(isinstance(a, np.ndarray) for a in args)
-        return original(self, *args, **kwargs)
-
-    kernel_impl.Kernel.__call__ = counted
-    try:
-        yield tally
-    finally:
-        kernel_impl.Kernel.__call__ = original

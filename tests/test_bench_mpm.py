@@ -108,8 +108,8 @@ def test_a_baseline_comparison_keeps_each_thread_count_and_scatter_apart():
 def test_a_kernels_profile_splits_into_its_loops_in_their_order():
     """Taichi's records name a launch's parallel loops ``<kernel>_c<i>_<j>_kernel_<k>_<type>``: per kernel the
     loops come in the order k of the kernel's code (10 after 2), each summed over the kernel's template
-    instances; a kernel of one loop is not split."""
-    from cosim.bench.mpm import by_kernel, by_task
+    instances; a kernel of one loop is not split. Tasks are counted per run, serial ones apart."""
+    from cosim.bench.kernel_profile import by_kernel, by_task, task_counts
 
     records = [
         ["_substep_fused_c84_0_kernel_10_range_for", 1.0, 3],
@@ -122,3 +122,5 @@ def test_a_kernels_profile_splits_into_its_loops_in_their_order():
     assert tasks == [("kernel_0_serial", 0.25), ("kernel_2_range_for", 4.5), ("kernel_10_range_for", 1.0)]
     assert sum(ms for _, ms in tasks) == next(k[1] for k in by_kernel(records) if k[0] == "_substep_fused")
     assert by_task(records, "_grid_update") == []
+    assert task_counts(records, "_substep_fused") == {"tasks": 12, "serial": 3}
+    assert task_counts(records) == {"tasks": 15, "serial": 3}

@@ -8,8 +8,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import taichi as ti
-from conftest import counting_launches
 
+from cosim.bench.kernel_profile import counting_launches
 from cosim.couplers.cloth_boundary import ClothBoundary
 from cosim.couplers.cloth_mesh_query import MeshQuery
 from cosim.couplers.cloth_tracing import ClothTracingError

@@ -1,10 +1,11 @@
 """The grid contact model against rigid SDF bodies: third law, friction, no penetration, adjoint."""
 
+import re
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from conftest import make_scene
+from conftest import make_scene, run_cli
 
 from cosim.couplers.boundary import RigidBoundaries
 from cosim.couplers.contact import ForecastContact, GridContact, ParticlePenalty
@@ -315,3 +316,22 @@ def test_bench_metrics_count_penetration_and_fast_separation_only():
     assert rebound_count(x - [0.1, 0.0], v, center, v_wall, inner, band=0.01, speed=1.0) == 0
     # a wall moving along with the particle: no separation at all
     assert rebound_count(x, v, center, v, inner, band=0.01, speed=0.1) == 0
+
+
+def test_the_contact_profile_splits_a_frame_into_kernels_launches_and_host_arrays(tmp_path):
+    """`cosim bench contact --profile --quick` (its own process: Taichi starts with the profiler): a frame of the
+    grid run launches its fused substep once per substep and hands the device the few host arrays a coupled
+    frame takes (``test_host_traffic``), and its kernels' time fits in the frame's wall time."""
+    import csv
+
+    done = run_cli("bench", "contact", "--profile", "--quick", "--out", str(tmp_path))
+    assert done.returncode == 0, done.stderr[-2000:]
+    report = (tmp_path / "contact_profile.md").read_text()
+    substeps = float(report.split("substeps a frame")[0].rsplit(", ", 1)[1])
+    wall, in_kernels = (float(v) for v in re.findall(r"([\d.]+) ms", report.split("- wall: ")[1].split("\n")[0]))
+    arrays = float(re.search(r"([\d.]+) host arrays", report).group(1))
+    rows = {r["kernel"]: r for r in csv.DictReader((tmp_path / "contact_profile.csv").open())}
+    assert 4 < substeps < 8  # the scene's CFL substeps (about 6)
+    assert float(rows["_substep_fused"]["launches_per_frame"]) == pytest.approx(substeps)
+    assert arrays <= 5
+    assert 0 < in_kernels < wall

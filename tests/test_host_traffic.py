@@ -3,8 +3,9 @@
 reactions out, the tunnelling check's poses) and unpacked on the device where they belong."""
 
 import numpy as np
-from conftest import SCENES, counting_launches, make_scene
+from conftest import SCENES, make_scene
 
+from cosim.bench.kernel_profile import counting_launches
 from cosim.scene import load_scene
 from cosim.scene.build import build_system
 

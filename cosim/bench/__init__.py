@@ -48,19 +48,21 @@ def run_bench(
     ``count`` / ``seed`` (fuzz): how many random scenes, from which seed (``workers``: its processes);
     ``steps`` / ``scenes`` (long): macro steps per scene, which shipped scenes (default one of each type);
     ``sizes`` / ``baseline`` / ``profile`` (mpm): 10k-1M particles; current/baseline ratios against the
-    cosim in that folder (``repeat`` runs each); Taichi's kernel profile; ``arch``, ``threads``, ``scatters``,
+    cosim in that folder (``repeat`` runs each); Taichi's kernel profile (also of contact's grid run); ``arch``, ``threads``, ``scatters``,
     ``particles``: on the GPU (``arch`` also for contact), on each CPU thread count, with each scatter, one block of that size
     (``cosim.bench.mpm``); ``peer`` ("softmac=DIR"): current/peer ratios against SoftMAC's MPM in DIR
     (``cosim.bench.mpm_peer``).
     """
-    mpm_only = sizes or baseline is not None or profile or threads or scatters or particles or peer
+    mpm_only = sizes or baseline is not None or threads or scatters or particles or peer
     from cosim.errors import InputError
 
     if what != "mpm" and mpm_only:
         raise InputError(
-            "--sizes, --baseline, --peer, --profile, --threads, --scatter and --particles are options of "
+            "--sizes, --baseline, --peer, --threads, --scatter and --particles are options of "
             f"`bench mpm`, not of `bench {what}`"
         )
+    if what not in ("mpm", "contact") and profile:
+        raise InputError(f"--profile is an option of `bench mpm` and `bench contact`, not of `bench {what}`")
     if what not in ("mpm", "contact") and arch != "cpu":
         raise InputError(f"--arch is an option of `bench mpm` and `bench contact`, not of `bench {what}`")
     from cosim.bench.report import bench_command
@@ -95,6 +97,10 @@ def run_bench(
         from cosim.bench.coupling import run_coupling_bench
 
         return run_coupling_bench(out_dir, quick=quick, repeat=repeat, command=command)
+    if what == "contact" and profile:
+        from cosim.bench.contact_profile import run_contact_profile
+
+        return run_contact_profile(out_dir, quick=quick, arch=arch, command=command)
     if what == "contact":
         from cosim.bench.contact import run_contact_bench
 

@@ -25,12 +25,12 @@ import csv
 import json
 import math
 import os
-import re
 import subprocess
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from cosim.bench.kernel_profile import by_kernel, by_task
 from cosim.guards import ENGINE_ALONE, GuardsOff
 
 # the engine is stepped alone (``mpm_measure``), without ``CoupledSystem.step``'s checks
@@ -236,37 +236,6 @@ def run_throughput(out_dir: Path, configs: list[dict], name: str, command: str |
     title = "MPM benchmark: elastic block, dt 1e-4 s; steps = substeps x macro steps; rates in M particle-substeps/s"
     write_report(out_dir / f"{name}.md", command, title, rows, TABLE)
     return 0
-
-
-def by_kernel(records: list) -> list[list]:
-    """Taichi's per-task records [name, ms, count] summed per kernel: a launch's tasks
-    (``_p2g_c84_0_kernel_1_range_for``) and its template instances (``_c84_0``, ``_c84_1``) are one row
-    ``[kernel, ms, launches]`` (``_p2g``; adjoints keep ``_reverse_grad``), most time first."""
-    launches: dict[str, list] = {}
-    for name, ms, count in records:
-        instance, _, _ = name.partition("_kernel_")
-        row = launches.setdefault(instance, [0.0, 0.0])
-        row[0] += ms
-        row[1] = max(row[1], count)  # every task of a launch runs once per launch
-    kernels: dict[str, list] = {}
-    for instance, (ms, count) in launches.items():
-        name = re.sub(r"_c\d+_\d+", "", instance)
-        row = kernels.setdefault(name, [name, 0.0, 0.0])
-        row[1] += ms
-        row[2] += count
-    return sorted(kernels.values(), key=lambda r: -r[1])
-
-
-def by_task(records: list, kernel: str) -> list[tuple[str, float]]:
-    """The parallel loops of ``kernel`` (a ``by_kernel`` row's name) with more than one: [(task, ms)], in
-    the kernel's order, a task's template instances summed (``kernel_3_range_for``: its fourth loop)."""
-    tasks: dict[str, float] = {}
-    for name, ms, _count in records:
-        instance, _, task = name.partition("_kernel_")
-        if re.sub(r"_c\d+_\d+", "", instance) == kernel:
-            tasks[f"kernel_{task}"] = tasks.get(f"kernel_{task}", 0.0) + ms
-    order = sorted(tasks, key=lambda t: int(re.match(r"kernel_(\d+)", t).group(1)))
-    return [(t, tasks[t]) for t in order] if len(order) > 1 else []
 
 
 def run_profile(out_dir: Path, config: dict | None = None, top: int = 10, command: str | None = None) -> int:
