@@ -5,7 +5,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from conftest import make_scene, run_cli
+from conftest import make_scene
 
 from cosim.couplers.boundary import RigidBoundaries
 from cosim.couplers.contact import ForecastContact, GridContact, ParticlePenalty
@@ -318,13 +318,23 @@ def test_bench_metrics_count_penetration_and_fast_separation_only():
     assert rebound_count(x, v, center, v, inner, band=0.01, speed=0.1) == 0
 
 
-def test_the_contact_profile_splits_a_frame_into_kernels_launches_and_host_arrays(tmp_path):
+@pytest.mark.parametrize("choices", ["cpu", "gpu"])
+def test_the_contact_profile_splits_a_frame_into_kernels_launches_and_host_arrays(choices, tmp_path):
     """`cosim bench contact --profile --quick` (its own process: Taichi starts with the profiler): a frame of the
     grid run launches its fused substep once per substep and hands the device the few host arrays a coupled
-    frame takes (``test_host_traffic``), and its kernels' time fits in the frame's wall time."""
+    frame takes (``test_host_traffic``), and its kernels' time fits in the frame's wall time. With a GPU's
+    loops (``COSIM_ARCH_CHOICES=gpu``) the fused substep runs no serial task: every loop's bounds are known
+    when it compiles (a serial task computing them would be a launch of its own on a GPU)."""
     import csv
+    import os
+    import subprocess
+    import sys
 
-    done = run_cli("bench", "contact", "--profile", "--quick", "--out", str(tmp_path))
+    env = {**os.environ, "COSIM_ARCH_CHOICES": "gpu"} if choices == "gpu" else None
+    args = ["bench", "contact", "--profile", "--quick", "--out", str(tmp_path)]
+    done = subprocess.run(
+        [sys.executable, "-m", "cosim.cli", *args], capture_output=True, text=True, env=env, check=False
+    )
     assert done.returncode == 0, done.stderr[-2000:]
     report = (tmp_path / "contact_profile.md").read_text()
     substeps = float(report.split("substeps a frame")[0].rsplit(", ", 1)[1])
@@ -332,6 +342,9 @@ def test_the_contact_profile_splits_a_frame_into_kernels_launches_and_host_array
     arrays = float(re.search(r"([\d.]+) host arrays", report).group(1))
     rows = {r["kernel"]: r for r in csv.DictReader((tmp_path / "contact_profile.csv").open())}
     assert 4 < substeps < 8  # the scene's CFL substeps (about 6)
-    assert float(rows["_substep_fused"]["launches_per_frame"]) == pytest.approx(substeps)
+    substep = rows["_substep_fused"]
+    assert float(substep["launches_per_frame"]) == pytest.approx(substeps)
     assert arrays <= 5
     assert 0 < in_kernels < wall
+    if choices == "gpu":  # the clear, P2G, grid update, liquid scatter, the hook's two passes, G2P
+        assert float(substep["serial_per_launch"]) == 0 and float(substep["tasks_per_launch"]) == 7

@@ -69,11 +69,13 @@ class ParticlePenalty:
             self._apply_particle(src, g, s, dt, p)
 
     @ti.func
-    def forward_pass(self, src, g, s, dt):
+    def forward_pass(self, src: ti.template(), g: ti.template(), s: ti.template(), dt: ti.template()):
         """``apply``'s loop, inlined in the engine's one-launch substep (``MPMKernels._substep_fused``)."""
         e = self.engine
         ti.loop_config(serialize=e.serial_particle_loops)
-        for p in range(e.count[None]):
+        for p in range(e.capacity if ti.static(e.constant_loop_bounds) else e.count[None]):
+            if e.idle(p):  # a thread per particle slot (``constant_loop_bounds``)
+                continue
             self._apply_particle(src, g, s, dt, p)
 
     @ti.func
@@ -242,11 +244,13 @@ class ForecastContact:
         self.forward_pass(src, g, s, dt)
 
     @ti.func
-    def forward_pass(self, src, g, s, dt):
+    def forward_pass(self, src: ti.template(), g: ti.template(), s: ti.template(), dt: ti.template()):
         """``_forecast``'s loop (inlined in it, and in the engine's one-launch substep)."""
         e = self.engine
         ti.loop_config(serialize=e.serial_particle_loops)
-        for p in range(e.count[None]):
+        for p in range(e.capacity if ti.static(e.constant_loop_bounds) else e.count[None]):
+            if e.idle(p):  # a thread per particle slot (``constant_loop_bounds``)
+                continue
             x = e.x[src, p]
             constrained = self._within_threshold(s, x, p)
             base, _fx, w = e.stencil(x)

@@ -105,11 +105,11 @@ class GridContact:
         self._scatter_liquid_pass(src, g)
 
     @ti.func
-    def _scatter_liquid_pass(self, src, g):
+    def _scatter_liquid_pass(self, src: ti.template(), g: ti.template()):
         e = self.engine
         ti.loop_config(serialize=e.serial_particle_loops)
-        for p in range(e.count[None]):
-            if e.is_liquid(p):
+        for p in range(e.capacity if ti.static(e.constant_loop_bounds) else e.count[None]):
+            if e.is_liquid(p) and not e.idle(p):  # a thread per particle slot (``constant_loop_bounds``)
                 base, _fx, w = e.stencil(e.x[src, p])
                 share = self._liquid_share(p)
                 for offset in ti.static(ti.grouped(ti.ndrange(*([3] * e.dim)))):
@@ -167,7 +167,14 @@ class GridContact:
         most 1): the solid the liquid's fill is read against (``_liquid_reach``)."""
         e = self.engine
         ti.loop_config(serialize=e.serial_grid_loops)
-        for I in ti.grouped(ti.ndrange(*[(e.active_lo[g][k], e.active_hi[g][k]) for k in ti.static(range(e.dim))])):
+        for I in ti.grouped(
+            ti.ndrange(
+                *[
+                    (e.active_lo[g][k], e.active_hi[g][k]) if ti.static(e.bounded_grid) else (0, e.nodes[k])
+                    for k in ti.static(range(e.dim))
+                ]
+            )
+        ):
             self._occupy_node(g, I, s)
 
     @ti.func
@@ -206,7 +213,14 @@ class GridContact:
     def _apply(self, g: ti.i32, s: ti.i32, dt: float):
         e = self.engine
         ti.loop_config(serialize=e.serial_grid_loops)
-        for I in ti.grouped(ti.ndrange(*[(e.active_lo[g][k], e.active_hi[g][k]) for k in ti.static(range(e.dim))])):
+        for I in ti.grouped(
+            ti.ndrange(
+                *[
+                    (e.active_lo[g][k], e.active_hi[g][k]) if ti.static(e.bounded_grid) else (0, e.nodes[k])
+                    for k in ti.static(range(e.dim))
+                ]
+            )
+        ):
             self._apply_node(g, I, s, dt)
 
     @ti.func
@@ -237,16 +251,30 @@ class GridContact:
         self.output[g, I] = v
 
     @ti.func
-    def forward_pass(self, src, g, s, dt):
+    def forward_pass(self, src: ti.template(), g: ti.template(), s: ti.template(), dt: ti.template()):
         """``apply``'s loops, inlined in the engine's one-launch substep (``MPMKernels._substep_fused``)."""
         e = self.engine
         if ti.static(self._reads_liquid()):
             self._scatter_liquid_pass(src, g)
             ti.loop_config(serialize=e.serial_grid_loops)
-            for I in ti.grouped(ti.ndrange(*[(e.active_lo[g][k], e.active_hi[g][k]) for k in ti.static(range(e.dim))])):
+            for I in ti.grouped(
+                ti.ndrange(
+                    *[
+                        (e.active_lo[g][k], e.active_hi[g][k]) if ti.static(e.bounded_grid) else (0, e.nodes[k])
+                        for k in ti.static(range(e.dim))
+                    ]
+                )
+            ):
                 self._occupy_node(g, I, s)
         ti.loop_config(serialize=e.serial_grid_loops)
-        for I in ti.grouped(ti.ndrange(*[(e.active_lo[g][k], e.active_hi[g][k]) for k in ti.static(range(e.dim))])):
+        for I in ti.grouped(
+            ti.ndrange(
+                *[
+                    (e.active_lo[g][k], e.active_hi[g][k]) if ti.static(e.bounded_grid) else (0, e.nodes[k])
+                    for k in ti.static(range(e.dim))
+                ]
+            )
+        ):
             self._apply_node(g, I, s, dt)
 
     @ti.func

@@ -11,7 +11,8 @@ per loop; a loop with less work than that runs faster on the launching thread. S
 on a CPU, loops over fewer than ``PARALLEL_MIN_PARTICLES`` particles or ``PARALLEL_MIN_NODES``
 grid nodes are serial (a small scene such as pull_door's 78 particles paid the dispatch in every
 one of its ~29 loops a step), and so are a small engine's grid loops, which cover only its
-particles' box (``MPMKernels``). On a GPU every loop is parallel. Taichi's own start-up options by
+particles' box (``MPMKernels``). On a GPU every loop is parallel, and the substep's loops have bounds known
+when they compile (``constant_loop_bounds``). Taichi's own start-up options by
 arch (threads, cache) are in ``cosim.runtime.init_options``.
 """
 
@@ -41,6 +42,10 @@ class ArchChoices:
     # per particle (plain on one CPU thread); a GPU passes over the whole grid in a few microseconds,
     # where every thread's atomic min / max on the same two entries would contend
     bounded_grid_passes: bool = False
+    # loops whose bounds Taichi would read from a field or an argument run over the whole grid or every particle
+    # slot instead, with constant bounds (the threads of other bodies idle): a GPU runs each of a kernel's tasks
+    # as a launch of its own, and a loop's bounds not known when it compiles cost a serial task before it
+    constant_loop_bounds: bool = False
 
     def serial_particles(self, n: int) -> bool:
         """Whether loops over ``n`` particles should run on one thread."""
@@ -59,7 +64,7 @@ def choices_for(arch: str, threads: int = 1) -> ArchChoices:
     if arch in CPU_ARCHES:
         scatter = "coloured" if threads >= COLOURED_MIN_THREADS else "serial"
         return ArchChoices(scatter, PARALLEL_MIN_PARTICLES, PARALLEL_MIN_NODES, bounded_grid_passes=True)
-    return ArchChoices("atomic")
+    return ArchChoices("atomic", constant_loop_bounds=True)
 
 
 def running_arch() -> str:
@@ -77,5 +82,13 @@ def running_threads() -> int:
 
 
 def current_choices() -> ArchChoices:
-    """The choices for the arch Taichi runs on now."""
-    return choices_for(running_arch(), running_threads())
+    """The choices for the arch Taichi runs on now, or a GPU's where ``COSIM_ARCH_CHOICES=gpu`` asks for them (the
+    kernels a GPU runs, on the CPU: to check them, and count their tasks, without a GPU)."""
+    import os
+
+    from cosim.errors import InputError
+
+    asked = os.environ.get("COSIM_ARCH_CHOICES", "")
+    if asked not in ("", "gpu"):
+        raise InputError(f"COSIM_ARCH_CHOICES={asked!r}: set it to gpu (a GPU's loop choices on any arch) or unset it")
+    return choices_for("cuda" if asked else running_arch(), running_threads())

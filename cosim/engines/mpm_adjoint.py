@@ -193,7 +193,12 @@ class MPMAdjointKernels(MPMKernels):
         does. Over grid copy g's box: the G2P adjoint wrote nothing outside it."""
         ti.loop_config(serialize=self.serial_grid_loops)
         for I in ti.grouped(
-            ti.ndrange(*[(self.active_lo[g][k], self.active_hi[g][k]) for k in ti.static(range(self.dim))])
+            ti.ndrange(
+                *[
+                    (self.active_lo[g][k], self.active_hi[g][k]) if ti.static(self.bounded_grid) else (0, self.nodes[k])
+                    for k in ti.static(range(self.dim))
+                ]
+            )
         ):
             source.velocity_grad(g, I, self.gathered_grad[I])
             self.gathered_grad[I] = ti.Vector.zero(float, self.dim)
@@ -317,7 +322,12 @@ class MPMAdjointKernels(MPMKernels):
         of its substep's first adjoint launch (``_g2p_adjoint``)."""
         ti.loop_config(serialize=self.serial_grid_loops)
         for I in ti.grouped(
-            ti.ndrange(*[(self.active_lo[g][k], self.active_hi[g][k]) for k in ti.static(range(self.dim))])
+            ti.ndrange(
+                *[
+                    (self.active_lo[g][k], self.active_hi[g][k]) if ti.static(self.bounded_grid) else (0, self.nodes[k])
+                    for k in ti.static(range(self.dim))
+                ]
+            )
         ):
             self.grid_mm.grad[g, I] = ti.Vector.zero(float, self.dim + 1)
             self.grid_v.grad[g, I] = ti.Vector.zero(float, self.dim)

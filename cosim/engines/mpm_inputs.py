@@ -60,7 +60,8 @@ def particle_capacity(n: int) -> int:
     ``MIN_CAPACITY`` or to one of ``CAPACITY_BUCKETS`` sizes per doubling (2^k times 1, 1.25, 1.5,
     1.75), at most 25% spare. Taichi's kernel cache keys include field shapes, so scenes whose
     particle counts share a bucket (and that match otherwise) reuse each other's compiled kernels;
-    kernels loop over the count (``MPMKernels.count``), never over the capacity."""
+    kernels loop over the count (``MPMKernels.count``), or (a GPU's substep, ``arch.constant_loop_bounds``) over
+    the capacity with the count checked inside, never past the count's particles."""
     if n <= MIN_CAPACITY:
         return MIN_CAPACITY
     step = (1 << ((n - 1).bit_length() - 1)) // CAPACITY_BUCKETS

@@ -31,6 +31,7 @@ from cosim.engines.arch import SCATTERS, current_choices
 from cosim.engines.data_oriented import data_oriented
 from cosim.engines.materials import MATERIALS
 from cosim.engines.mpm_bins import ParticleBins
+from cosim.engines.mpm_g2p import G2PKernels
 from cosim.engines.mpm_inputs import MPMConfig, ParticleBody, particle_capacity
 from cosim.engines.mpm_p2g import P2GKernels
 from cosim.engines.mpm_slot_io import SlotIO
@@ -42,7 +43,7 @@ WALL_SOFT = 1e-4  # [m/s] the domain walls' removal of an approach is rounded ov
 
 
 @data_oriented
-class MPMKernels(StencilFunctions, SlotIO, ParticleBins, P2GKernels):
+class MPMKernels(StencilFunctions, SlotIO, ParticleBins, P2GKernels, G2PKernels):
     """Fields, kernels and substep phases of the MPM; hooks and the contract live in ``MPMEngine``."""
 
     def __init__(self, config: MPMConfig, bodies: list[ParticleBody]):
@@ -135,6 +136,7 @@ class MPMKernels(StencilFunctions, SlotIO, ParticleBins, P2GKernels):
         if grad or not self.stress_in_scatter:
             self.affine = field_pool.matrix(self, d, d, float, shape=self.per_particle)
         self.bounded_grid = choices.bounded_grid_passes  # else every grid pass covers the whole grid (GPU)
+        self.constant_loop_bounds = choices.constant_loop_bounds  # P2G's and G2P's particle loops (GPU)
         if not self.bounded_grid:
             self.active_hi.from_numpy(np.tile(np.array(self.nodes, dtype=np.int32), (self.n_grids, 1)))
         # the grid passes cover the particles' box (``_clear_box``), which few particles keep small: a
@@ -200,6 +202,23 @@ class MPMKernels(StencilFunctions, SlotIO, ParticleBins, P2GKernels):
         return E / (2.0 * (1.0 + nu)), E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
 
     @ti.func
+    def idle(self, p):
+        """Whether particle slot p has no particle, in a loop over every slot (``constant_loop_bounds``: a GPU's
+        loops, whose bounds are constants; elsewhere loops end at the count and this is False)."""
+        out = False
+        if ti.static(self.constant_loop_bounds):
+            out = p >= self.count[None]
+        return out
+
+    @ti.func
+    def off_body(self, b, p):
+        """Whether particle slot p is not body b's, in a loop over every slot (as ``idle``)."""
+        out = False
+        if ti.static(self.constant_loop_bounds):
+            out = p < self.body_range[b][0] or p >= self.body_range[b][1]
+        return out
+
+    @ti.func
     def node_mass(self, g, I):
         """Mass [kg] P2G scattered to node I of grid copy g."""
         return self.grid_mm[g, I][self.dim]
@@ -234,16 +253,26 @@ class MPMKernels(StencilFunctions, SlotIO, ParticleBins, P2GKernels):
         ``ti.func``: Taichi differentiates this kernel (``_grid_update.grad``) and refuses such a loop."""
         ti.loop_config(serialize=self.serial_grid_loops)
         for I in ti.grouped(
-            ti.ndrange(*[(self.active_lo[g][k], self.active_hi[g][k]) for k in ti.static(range(self.dim))])
+            ti.ndrange(
+                *[
+                    (self.active_lo[g][k], self.active_hi[g][k]) if ti.static(self.bounded_grid) else (0, self.nodes[k])
+                    for k in ti.static(range(self.dim))
+                ]
+            )
         ):
             self._grid_node_update(g, I, dt, mass_floor)
 
     @ti.func
-    def _grid_update_pass(self, g, dt, mass_floor):
+    def _grid_update_pass(self, g: ti.template(), dt: ti.template(), mass_floor: ti.template()):
         """``_grid_update``'s loop, for the fused substep (``_substep_fused``)."""
         ti.loop_config(serialize=self.serial_grid_loops)
         for I in ti.grouped(
-            ti.ndrange(*[(self.active_lo[g][k], self.active_hi[g][k]) for k in ti.static(range(self.dim))])
+            ti.ndrange(
+                *[
+                    (self.active_lo[g][k], self.active_hi[g][k]) if ti.static(self.bounded_grid) else (0, self.nodes[k])
+                    for k in ti.static(range(self.dim))
+                ]
+            )
         ):
             self._grid_node_update(g, I, dt, mass_floor)
 
@@ -277,46 +306,6 @@ class MPMKernels(StencilFunctions, SlotIO, ParticleBins, P2GKernels):
             # with gradients the backward pass reads these values back, and
             # a contact hook reads the masses after this kernel
             self.grid_mm[g, I] = ti.Vector.zero(float, self.dim + 1)
-
-    @ti.kernel
-    def _g2p_advect(
-        self,
-        mat: ti.template(),
-        b: ti.i32,
-        start: ti.i32,
-        end: ti.i32,
-        src: ti.i32,
-        dst: ti.i32,
-        g: ti.i32,
-        source: ti.template(),
-        s: ti.i32,
-        dt: float,
-    ):
-        """G2P and advection of one body (parallel unless the engine is small): gather velocity and affine
-        field from the grid (``source.velocity``) into slot ``dst``, flag NaN / inf for substep s
-        (``mpm_watch``), move the particles and update F with the material's return mapping. One kernel,
-        not two: a launch and a pass over v and C fewer per substep. Its adjoint is split (``mpm_adjoint``)."""
-        self._g2p_pass(mat, b, start, end, src, dst, g, source, s, dt)
-
-    @ti.func
-    def _g2p_pass(self, mat: ti.template(), b, start, end, src, dst, g, source: ti.template(), s, dt):
-        """``_g2p_advect``'s loop (inlined in it, and in the fused substep)."""
-        ti.loop_config(serialize=self.serial_particle_loops)
-        for p in range(start, end):
-            xp = self.x[src, p]
-            base, fx, w = self.stencil(xp)
-            new_v, first = self.gather_moments(source, g, base, w)
-            new_C = (4.0 * self.inv_dx) * (first - new_v.outer_product(fx))
-            self.v[dst, p] = new_v
-            self.C[dst, p] = new_C
-            F = self.F[src, p]
-            mu, lam = self._lame(b)
-            new_x = xp + dt * new_v
-            self.x[dst, p] = new_x
-            F_trial = (ti.Matrix.identity(float, self.dim) + dt * new_C) @ F
-            new_F = mat.project(F_trial, mu, lam, self.yield_stress[b])
-            self.F[dst, p] = new_F
-            self.watch.flag(p, s, xp, F, new_x, new_F)  # last: a branch earlier slows the loop
 
     # ------------------------------------------------------------ substep phases
     def _mass_floor(self) -> float:
@@ -407,14 +396,16 @@ class MPMKernels(StencilFunctions, SlotIO, ParticleBins, P2GKernels):
             hook.forward_pass(src, g, s, dt)
         clear = ti.static(not self._fused_clear())  # else the grid update cleared the grid
         for b in ti.static(range(len(self.bodies))):
-            lo, hi = self.body_range[b][0], self.body_range[b][1]
+            # the loops' bounds (unused where they are constant: read there, a GPU would run a serial task for them)
+            lo, hi = (0, 0) if ti.static(self.constant_loop_bounds) else (self.body_range[b][0], self.body_range[b][1])
             self._p2g_pass(self.scatter, self.materials[b], b, lo, hi, src, g, dt, control_share,
                            b == 0, 0, clear and b == 0, 1)  # fmt: skip
         self._grid_update_pass(g, dt, floor)
         for hook in ti.static(self.grid_hooks):
             hook.forward_pass(src, g, s, dt)
         for b in ti.static(range(len(self.bodies))):
-            lo, hi = self.body_range[b][0], self.body_range[b][1]
+            # the loops' bounds (unused where they are constant: read there, a GPU would run a serial task for them)
+            lo, hi = (0, 0) if ti.static(self.constant_loop_bounds) else (self.body_range[b][0], self.body_range[b][1])
             self._g2p_pass(self.materials[b], b, lo, hi, src, dst, g, self._grid_out, s, dt)
 
 

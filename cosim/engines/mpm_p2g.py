@@ -19,7 +19,7 @@ class P2GKernels:
     """The grid clear, the stress and the scatter of one substep (``_p2g``)."""
 
     @ti.func
-    def _clear_box(self, g, clear):
+    def _clear_box(self, g: ti.template(), clear: ti.template()):
         """Zero grid copy g where its last substep wrote (if ``clear``, else nothing): its box, which this
         substep's P2G then bounds anew. Every write to a grid copy stays inside its box, so the whole copy is
         zero afterwards. Every pass over a grid copy (this clear, the grid update, the grid hooks, their
@@ -33,6 +33,8 @@ class P2GKernels:
             ti.ndrange(
                 *[
                     (self.active_lo[g][k], self.active_lo[g][k] + clear * (self.active_hi[g][k] - self.active_lo[g][k]))
+                    if ti.static(self.bounded_grid)
+                    else (0, clear * self.nodes[k])  # the whole grid, constant bounds when ``clear`` is (``arch``)
                     for k in ti.static(range(self.dim))
                 ]
             )
@@ -55,9 +57,14 @@ class P2GKernels:
     def _stress(self, mat: ti.template(), b, start, end, src, g, dt):
         """Affine momenta of particles [start, end) into ``affine`` (parallel unless the engine is small:
         ``arch``; its own loop of ``_p2g``'s kernel) when the scatter does not compute them itself
-        (``stress_in_scatter``)."""
+        (``stress_in_scatter``). With ``constant_loop_bounds``: of every slot of body b if end > start."""
         ti.loop_config(serialize=self.serial_particle_loops)
-        for p in range(start, end):
+        for p in range(
+            0 if ti.static(self.constant_loop_bounds) else start,
+            self.capacity * (end > start) if ti.static(self.constant_loop_bounds) else end,
+        ):
+            if self.off_body(b, p):  # a thread per particle slot (``constant_loop_bounds``)
+                continue
             self.affine[g, p] = self._affine_momentum(mat, b, p, src, dt)
 
     @ti.func
@@ -123,17 +130,17 @@ class P2GKernels:
         self,
         scatter: ti.template(),
         mat: ti.template(),
-        b,
-        start,
-        end,
-        src,
-        g,
-        dt,
-        control_share,
-        first_body,
-        colour,
-        clear,
-        stress,
+        b: ti.template(),
+        start: ti.template(),
+        end: ti.template(),
+        src: ti.template(),
+        g: ti.template(),
+        dt: ti.template(),
+        control_share: ti.template(),
+        first_body: ti.template(),
+        colour: ti.template(),
+        clear: ti.template(),
+        stress: ti.template(),
     ):
         """Scatter mass and momentum, and bound the nodes written: the box [active_lo, active_hi) of grid
         copy g, which the grid passes loop over (a body usually covers a small part of the domain), started
@@ -149,7 +156,10 @@ class P2GKernels:
         no affine field written and read back, 2 d^2 floats a particle less memory traffic."""
         self._clear_box(g, clear)
         if ti.static(not self.stress_in_scatter):
-            self._stress(mat, b, start, start + stress * (end - start), src, g, dt)
+            if ti.static(self.constant_loop_bounds):
+                self._stress(mat, b, 0, stress, src, g, dt)  # every slot of body b if ``stress``
+            else:
+                self._stress(mat, b, start, start + stress * (end - start), src, g, dt)
         margin = ti.static(self.box_margin)
         bounded = ti.static(self.bounded_grid)  # else the box stays the whole grid (``arch``)
         if ti.static(bounded):  # noqa: SIM102 (a compile-time test: Taichi cannot join it with a run-time one)
@@ -169,7 +179,12 @@ class P2GKernels:
                         self._p2g_particle(mat, b, self.bin_order[k], src, g, dt, control_share, False)
         else:
             ti.loop_config(serialize=scatter == "serial")
-            for p in range(start, end):
+            for p in range(
+                0 if ti.static(self.constant_loop_bounds) else start,
+                self.capacity if ti.static(self.constant_loop_bounds) else end,
+            ):
+                if self.off_body(b, p):  # a thread per particle slot (``constant_loop_bounds``)
+                    continue
                 base = self._p2g_particle(mat, b, p, src, g, dt, control_share, scatter == "atomic")
                 if ti.static(bounded):
                     ti.atomic_min(self.active_lo[g], base - margin)
