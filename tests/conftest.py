@@ -97,6 +97,27 @@ def make_scene(**overrides):
     return parse_scene(scene_dict(**overrides), ROOT)
 
 
+def pushed_block_scene(model: str):
+    """``make_scene``'s block pushed up by a kinematic plate through contact ``model``, a zero impulse control
+    on the block and a loss on its positions: 3 steps whose loss and gradients go through contact."""
+    return make_scene(
+        steps=3,
+        rigid={
+            "bodies": [
+                {
+                    "name": "plate",
+                    "shape": {"type": "box", "size": [0.3, 0.04]},
+                    "position": [0.5, 0.36],
+                    "motion": {"type": "constant", "velocity": [0.0, 0.5]},
+                }
+            ]
+        },
+        controls=[{"body": "block", "impulse": [0.0, 0.0]}],
+        contact={"model": model, "friction": 0.2},
+        loss={"type": "weighted_positions", "body": "block"},
+    )
+
+
 def run_cli(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
     """Run `cosim ...` in a fresh process (its own Taichi start-up)."""
     return subprocess.run(

@@ -102,28 +102,13 @@ def test_short_loops_run_on_one_thread_and_give_the_parallel_results(monkeypatch
     """A tiny scene's particle and grid loops are serial on a CPU (a thread-pool dispatch costs more than
     their work); forced parallel, the same scene gives the same loss and gradients (float64, atomic adds
     in another order: 1e-9)."""
-    from conftest import make_scene
+    from conftest import pushed_block_scene
 
     from cosim.adjoint.objective import Objective
     from cosim.engines import arch
     from cosim.scene.build import build_system
 
-    scene = make_scene(
-        steps=3,
-        rigid={
-            "bodies": [
-                {
-                    "name": "plate",
-                    "shape": {"type": "box", "size": [0.3, 0.04]},
-                    "position": [0.5, 0.36],
-                    "motion": {"type": "constant", "velocity": [0.0, 0.5]},
-                }
-            ]
-        },
-        controls=[{"body": "block", "impulse": [0.0, 0.0]}],
-        contact={"model": "forecast", "friction": 0.2},
-        loss={"type": "weighted_positions", "body": "block"},
-    )
+    scene = pushed_block_scene("forecast")
     serial = Objective(build_system(scene, requires_grad=True))
     assert serial.system.mpm.serial_particle_loops and serial.system.mpm.serial_grid_loops
     monkeypatch.setattr(arch, "PARALLEL_MIN_PARTICLES", 0)

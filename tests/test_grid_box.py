@@ -71,26 +71,11 @@ def test_a_gpus_loops_forced_on_the_cpu_give_the_cpus_loss_and_gradients(model, 
     passes, loops over every particle slot with constant bounds) on the CPU. A plate pushing a block through
     grid or forecast contact: the same loss and gradients as the CPU's own loops (float64; atomic adds sum
     in another order: 1e-9), through the forward substep's passes and the adjoints' grid passes."""
-    from conftest import make_scene
+    from conftest import pushed_block_scene
 
     from cosim.adjoint.objective import Objective
 
-    scene = make_scene(
-        steps=3,
-        rigid={
-            "bodies": [
-                {
-                    "name": "plate",
-                    "shape": {"type": "box", "size": [0.3, 0.04]},
-                    "position": [0.5, 0.36],
-                    "motion": {"type": "constant", "velocity": [0.0, 0.5]},
-                }
-            ]
-        },
-        controls=[{"body": "block", "impulse": [0.0, 0.0]}],
-        contact={"model": model, "friction": 0.2},
-        loss={"type": "weighted_positions", "body": "block"},
-    )
+    scene = pushed_block_scene(model)
     cpu = Objective(build_system(scene, requires_grad=True))
     monkeypatch.setenv("COSIM_ARCH_CHOICES", "gpu")
     gpu = Objective(build_system(scene, requires_grad=True))
