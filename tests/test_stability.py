@@ -183,6 +183,28 @@ def test_a_forward_run_reads_no_particle_state():
     assert reads == []
 
 
+def test_a_state_view_about_to_be_overwritten_reads_its_missing_keys_in_one_launch():
+    """A forward step's state is a view of its slot (``SlotState``); one still held when the engine is about to
+    overwrite the slot reads the keys nobody read yet: together in one launch (on a GPU every read is a wait),
+    a last one alone by itself, and the view keeps the slot's numbers."""
+    from cosim.engines.slot_state import SlotState
+
+    sim = build_system(make_scene(steps=2))
+    sim.step()
+    expected = sim.mpm.state()
+    reads, read_slot = [], sim.mpm.read_slot
+    sim.mpm.read_slot = lambda key, slot: reads.append(key) or read_slot(key, slot)
+    fresh, partly = SlotState(sim.mpm, sim.mpm._slot), SlotState(sim.mpm, sim.mpm._slot)
+    for key in ("x", "v", "C"):
+        partly[key]
+    reads.clear()
+    fresh.detach()
+    partly.detach()
+    assert reads == [None, "F"]
+    for key, value in expected.items():
+        assert np.array_equal(fresh[key], value) and np.array_equal(partly[key], value), key
+
+
 def test_forward_run_allocates_no_gradient_buffers():
     sim = build_system(make_scene(controls=[{"body": "block"}]))
     assert sim.mpm.n_slots == 4  # four particle slots (a step keeps its start and the last one's), one grid

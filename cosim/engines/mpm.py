@@ -375,9 +375,10 @@ class MPMEngine(MPMAdjointKernels):
     def _adjoint_fields(self) -> tuple:
         return tuple(getattr(self, k).grad for k in STATE_KEYS)
 
-    def read_slot(self, key: str, slot: int) -> np.ndarray:
-        """State key ``key`` (of ``STATE_KEYS``) of the particles in ``slot``, float64 on the host."""
-        return self._get(getattr(self, key), slot)
+    def read_slot(self, key: str | None, slot: int) -> np.ndarray | dict[str, np.ndarray]:
+        """State key ``key`` (of ``STATE_KEYS``) of the particles in ``slot``, float64 on the host; every key
+        (a dict) in one launch when ``key`` is None."""
+        return self._get_state(self._state_fields(), slot) if key is None else self._get(getattr(self, key), slot)
 
     # ------------------------------------------------------------ helpers
     def gradient_buffers_allocated(self) -> bool:
