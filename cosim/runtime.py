@@ -119,9 +119,10 @@ def init_options(arch: str) -> dict:
     """The ``ti.init`` options that depend on the arch and the environment (see the module docstring):
     ``cpu_max_num_threads`` from ``COSIM_CPU_THREADS`` on a CPU, ``offline_cache_file_path`` from
     ``COSIM_TAICHI_CACHE``, ``kernel_profiler`` from ``COSIM_KERNEL_PROFILER=1``, and the cache's
-    size cap (``KERNEL_CACHE_BYTES``)."""
-    from cosim.engines.arch import CPU_ARCHES
+    size cap (``KERNEL_CACHE_BYTES``); a bad ``COSIM_ARCH_CHOICES`` is named here too, before anything starts."""
+    from cosim.engines.arch import CPU_ARCHES, gpu_choices_asked
 
+    gpu_choices_asked()  # a bad COSIM_ARCH_CHOICES named before anything starts
     options = {}
     threads = os.environ.get("COSIM_CPU_THREADS", "")
     if threads and (not threads.isdigit() or int(threads) == 0):

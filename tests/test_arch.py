@@ -43,6 +43,10 @@ def test_thread_cap_and_kernel_cache_are_settings(monkeypatch, tmp_path):
     monkeypatch.setenv("COSIM_CPU_THREADS", "two")
     with pytest.raises(InputError, match="COSIM_CPU_THREADS"):
         init_options("cpu")
+    monkeypatch.setenv("COSIM_CPU_THREADS", "1")
+    monkeypatch.setenv("COSIM_ARCH_CHOICES", "cuda")  # only "gpu" (a GPU's loop choices) means something
+    with pytest.raises(InputError, match="COSIM_ARCH_CHOICES='cuda': set it to gpu"):
+        init_options("cpu")
 
 
 @pytest.mark.skipif(shutil.which("nvidia-smi") is not None, reason="this machine may have a CUDA GPU")

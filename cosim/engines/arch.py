@@ -81,9 +81,9 @@ def running_threads() -> int:
     return int(impl.current_cfg().cpu_max_num_threads)
 
 
-def current_choices() -> ArchChoices:
-    """The choices for the arch Taichi runs on now, or a GPU's where ``COSIM_ARCH_CHOICES=gpu`` asks for them (the
-    kernels a GPU runs, on the CPU: to check them, and count their tasks, without a GPU)."""
+def gpu_choices_asked() -> bool:
+    """Whether ``COSIM_ARCH_CHOICES=gpu`` asks for a GPU's choices on any arch (the kernels a GPU runs, on the
+    CPU: to check them, and count their tasks, without a GPU); an ``InputError`` for another value."""
     import os
 
     from cosim.errors import InputError
@@ -91,4 +91,9 @@ def current_choices() -> ArchChoices:
     asked = os.environ.get("COSIM_ARCH_CHOICES", "")
     if asked not in ("", "gpu"):
         raise InputError(f"COSIM_ARCH_CHOICES={asked!r}: set it to gpu (a GPU's loop choices on any arch) or unset it")
-    return choices_for("cuda" if asked else running_arch(), running_threads())
+    return asked == "gpu"
+
+
+def current_choices() -> ArchChoices:
+    """The choices for the arch Taichi runs on now, or a GPU's (``gpu_choices_asked``)."""
+    return choices_for("cuda" if gpu_choices_asked() else running_arch(), running_threads())
