@@ -18,7 +18,8 @@
 # wheels into /tmp/site, then runs these steps, each writing its report and CSV under $OUT:
 #   gpu      `cosim bench mpm --arch cuda`: 30k, 250k and 2M particles on the GPU;
 #   profile  `cosim bench mpm --arch cuda --profile`: Taichi's kernel profiler over the 2M block, each kernel
-#            and each of its parallel loops (what bounds the 2M forward and its backward);
+#            and each of its parallel loops (what bounds the 2M forward and its backward), then over the 30k block
+#            (`--particles 30000`: its kernels' time against its wall time says whether launches bound it);
 #   contact  `cosim bench contact --arch cuda --repeat 1` (the paper's contact benchmark: 1100 frames, every
 #            model and wall, the steps after the first timed), its `--profile` (a grid frame's kernels, launches,
 #            host arrays and device tasks: host- or device-bound), then `cosim run scenes/shake_container_2d.yaml
@@ -54,9 +55,10 @@ for step in $steps; do
     case "$step" in
     gpu)
         if q; then cosim bench mpm --arch "$arch" --quick --out "$out/gpu"; else cosim bench mpm --arch "$arch" --out "$out/gpu"; fi ;;
-    profile)
+    profile)  # the 2M block (what bounds it), then the 30k block (launch-bound or not: the criterion against SoftMAC)
         if q; then cosim bench mpm --arch "$arch" --profile --quick --out "$out/profile"
-        else cosim bench mpm --arch "$arch" --profile --out "$out/profile"; fi ;;
+        else cosim bench mpm --arch "$arch" --profile --out "$out/profile"; fi
+        cosim bench mpm --arch "$arch" --profile --particles 30000 --out "$out/profile30k" ;;
     contact)  # the paper's contact benchmark, then its grid run twice: run 2 loads run 1's kernels from the cache
         frames=1100
         if q; then frames=100; fi
