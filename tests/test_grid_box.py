@@ -65,17 +65,19 @@ def test_a_gpu_passes_over_the_whole_grid_with_the_same_result(monkeypatch):
         np.testing.assert_allclose(values, whole[key], rtol=0, atol=1e-12 * max(np.abs(whole[key]).max(), 1.0))
 
 
-@pytest.mark.parametrize("model", ["grid", "forecast"])
-def test_a_gpus_loops_forced_on_the_cpu_give_the_cpus_loss_and_gradients(model, monkeypatch):
+@pytest.mark.parametrize(("model", "material"), [("grid", "elastic"), ("grid", "liquid"), ("forecast", "elastic")])
+def test_a_gpus_loops_forced_on_the_cpu_give_the_cpus_loss_and_gradients(model, material, monkeypatch):
     """``COSIM_ARCH_CHOICES=gpu``: the kernels a GPU runs (atomic scatter, every loop parallel, whole-grid
     passes, loops over every particle slot with constant bounds) on the CPU. A plate pushing a block through
     grid or forecast contact: the same loss and gradients as the CPU's own loops (float64; atomic adds sum
-    in another order: 1e-9), through the forward substep's passes and the adjoints' grid passes."""
+    in another order: 1e-9), through the forward substep's passes and the adjoints' (a liquid block: the
+    grid model's liquid scatter and its adjoint, a fifth of the gradient there)."""
     from conftest import pushed_block_scene
 
     from cosim.adjoint.objective import Objective
 
     scene = pushed_block_scene(model)
+    scene.mpm.bodies[0].material.type = material
     cpu = Objective(build_system(scene, requires_grad=True))
     monkeypatch.setenv("COSIM_ARCH_CHOICES", "gpu")
     gpu = Objective(build_system(scene, requires_grad=True))

@@ -134,25 +134,30 @@ def test_a_scene_with_grid_contact_runs_the_same_with_the_coloured_scatter():
         np.testing.assert_allclose(states["coloured"][key], want, rtol=0, atol=1e-10 * max(np.abs(want).max(), 1.0))
 
 
-def test_a_gradient_through_grid_contact_is_the_same_with_every_scatter():
+def test_a_gradient_through_grid_contact_is_the_same_with_every_scatter(monkeypatch):
     """shake_container_2d's gradient (the grid contact hook sits between the grid and G2P, so the G2P adjoint
     scatters onto the hook's gathered adjoint and hands it over) over 2 macro steps: the initial state's
-    adjoint with the coloured and the atomic scatter is the serial one's to round-off. A hand-over left
-    out, done before the scatter or twice, or a grid adjoint not zeroed, would change it at every node."""
+    adjoint with the coloured and the atomic scatter, and with a GPU's loops (``COSIM_ARCH_CHOICES=gpu``:
+    atomic, whole-grid passes, the particles' adjoint loops over every slot), is the serial one's to
+    round-off. A hand-over left out, done before the scatter or twice, or a grid adjoint not zeroed,
+    would change it at every node."""
     from cosim.adjoint.tape import Tape
 
     grads = {}
-    for scatter in ("serial", "coloured", "atomic"):
+    for scatter in ("serial", "coloured", "atomic", "gpu"):
+        if scatter == "gpu":
+            monkeypatch.setenv("COSIM_ARCH_CHOICES", "gpu")
         scene = load_scene(SCENES / "shake_container_2d.yaml", {"precision": "float64", "steps": 2},
-                           [f"mpm.scatter={scatter}", "time.substeps=4"])  # fmt: skip
+                           [f"mpm.scatter={'atomic' if scatter == 'gpu' else scatter}", "time.substeps=4"])  # fmt: skip
         sim = build_system(scene, requires_grad=True)
+        assert sim.mpm.constant_loop_bounds == (scatter == "gpu")
         start = sim.state()
         tape = Tape()
         sim.rollout(tape=tape)
         rng = np.random.default_rng(3)
         seed = {engine: {k: rng.normal(size=v.shape) for k, v in s.items()} for engine, s in start.items()}
         grads[scatter] = tape.backward(sim.vjp, seed).state0["mpm"]
-    for scatter in ("coloured", "atomic"):
+    for scatter in ("coloured", "atomic", "gpu"):
         for key in STATE_KEYS:
             want = grads["serial"][key]
             np.testing.assert_allclose(grads[scatter][key], want, rtol=0, atol=1e-9 * np.abs(want).max(), err_msg=key)

@@ -120,8 +120,8 @@ class GridContact:
         """Adjoint of ``_scatter_liquid``: its adjoint gathered into the liquid particles' positions'."""
         e = self.engine
         ti.loop_config(serialize=e.serial_particle_loops)
-        for p in range(e.count[None]):
-            if e.is_liquid(p):
+        for p in range(e.capacity if ti.static(e.constant_loop_bounds) else e.count[None]):
+            if e.is_liquid(p) and not e.idle(p):  # a thread per particle slot (``constant_loop_bounds``)
                 base, fx, _w = e.stencil(e.x[src, p])
                 weights, slopes = e.axis_weights(fx)
                 share = self._liquid_share(p)

@@ -49,7 +49,12 @@ class MPMAdjointKernels(MPMKernels):
         one parallel pass: the affine momentum's adjoint the first gives the second stays in registers (a
         field of d^2 entries per particle and grid copy, written and read back, before)."""
         ti.loop_config(serialize=self.serial_particle_loops)
-        for p in range(start, end):  # each particle owns its adjoint entries: plain adds, not atomics
+        for p in range(
+            0 if ti.static(self.constant_loop_bounds) else start,
+            self.capacity if ti.static(self.constant_loop_bounds) else end,
+        ):  # each particle owns its adjoint entries: plain adds, not atomics
+            if self.off_body(b, p):  # a thread per particle slot (``constant_loop_bounds``)
+                continue
             g_affine = self._p2g_adjoint_particle(b, p, src, g, control_share)
             self._stress_adjoint_particle(mat, b, p, src, dt, g_affine, material_grads)
         if ti.static(material_grads):
@@ -185,7 +190,7 @@ class MPMAdjointKernels(MPMKernels):
         return self.inv_dx * g_fx - self.inv_dx * (g_C.transpose() @ new_v)
 
     @ti.func
-    def _hand_over(self, g, source: ti.template()):
+    def _hand_over(self, g: ti.template(), source: ti.template()):
         """Hand the adjoint of the gathered velocities to their source (``velocity_grad``: the
         engine's grid velocity or the last grid hook, which passes it upstream) and clear it.
         A grid pass of its own after the scatter (the last loop of its last launch): inside the G2P
@@ -248,7 +253,12 @@ class MPMAdjointKernels(MPMKernels):
         if ti.static(first):
             self._zero_grid_grad(g)
         ti.loop_config(serialize=self.serial_particle_loops)
-        for p in range(start, end):  # each particle owns its adjoint entries: plain adds, not atomics
+        for p in range(
+            0 if ti.static(self.constant_loop_bounds) else start,
+            self.capacity if ti.static(self.constant_loop_bounds) else end,
+        ):  # each particle owns its adjoint entries: plain adds, not atomics
+            if self.off_body(b, p):  # a thread per particle slot (``constant_loop_bounds``)
+                continue
             x_bar, v_bar, C_bar = self._advect_adjoint_particle(mat, b, p, src, dst, dt, material_grads)
             base, fx, w = self.stencil(self.x[src, p])
             self.x.grad[src, p] = x_bar + self._g2p_position_adjoint(base, fx, w, v_bar, C_bar, g, source)
@@ -284,7 +294,7 @@ class MPMAdjointKernels(MPMKernels):
         return x_bar, v_bar, C_bar
 
     @ti.func
-    def _lame_grad(self, b):
+    def _lame_grad(self, b: ti.template()):
         """Add dL/dE and dL/dnu of body b from the dL/dmu and dL/dlam its particles summed into ``lame_bar``
         (mu = E / (2 (1 + nu)), lam = E nu / q, q = (1 + nu)(1 - 2 nu)), and reset the sum. Called after
         the particle loop: as its own one-iteration loop it runs once the sums are complete. Summing into
@@ -316,7 +326,7 @@ class MPMAdjointKernels(MPMKernels):
             self.nu.grad[b] = 0.0
 
     @ti.func
-    def _zero_grid_grad(self, g):
+    def _zero_grid_grad(self, g: ti.template()):
         """Zero grid copy g's adjoints, and its grid hooks' (``grid_adjoints``), over its box (``_clear_box``):
         only its nodes are read and written by its substep's adjoint, so no fill of all K grids. The first loop
         of its substep's first adjoint launch (``_g2p_adjoint``)."""
