@@ -404,11 +404,7 @@ def make_parser() -> argparse.ArgumentParser:
         help="mpm: also run SoftMAC's MPM from its checkout DIR on 3D float64 blocks, interleaved; "
         "prints current/peer ratios",
     )
-    b.add_argument(
-        "--profile",
-        action="store_true",
-        help="mpm: Taichi's kernel profile of 3D 64³ float32; contact: of a grid-model frame",
-    )
+    b.add_argument("--profile", action="store_true", help="mpm: kernel profile of 3D 64³ float32; contact: of a frame")
     b.add_argument("--arch", choices=["cpu", "cuda"], default="cpu", help="mpm, contact: where Taichi runs")
     b.add_argument("--threads", type=positive_ints, metavar="N,N", help="mpm: each config on these CPU thread counts")
     b.add_argument("--scatter", type=words, metavar="S,S", help="mpm: each config with these scatters (serial, ...)")
