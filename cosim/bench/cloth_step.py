@@ -4,7 +4,7 @@ A square 1 m sheet, horizontal (normal y), pinned along one edge, falling under 
 k_stretch 1000 N/m, k_bend 0.015 N m, density 0.2 kg/m^2. Per size: the median forward and adjoint
 time per step (JAX compilation excluded by warm-up steps), Newton iterations, and a cProfile split
 of the forward steps (element Hessians in JAX, PSD projection, sparse assembly, LU factorisation,
-energies and gradients for the line search). Part of `cosim bench cloth` (``cosim.bench.cloth``).
+preconditioned conjugate gradients, energies and gradients for the line search). Part of `cosim bench cloth` (``cosim.bench.cloth``).
 """
 
 from __future__ import annotations
@@ -18,11 +18,14 @@ import time
 
 import numpy as np
 
+from cosim.engines.cloth_linear import REFACTOR_AFTER
+
 SPLIT = {  # label -> (file suffix, function name) of the profiled calls
     "hessians_jax_s": ("cloth_energy.py", "hessians"),
     "psd_projection_s": ("cloth_energy.py", "project_psd"),
     "assembly_s": ("cloth_energy.py", "matrix"),
     "factorisation_s": ("_dsolve/linsolve.py", "splu"),
+    "conjugate_gradients_s": ("cloth_linear.py", "preconditioned_cg"),
     "energies_s": ("cloth_energy.py", "energies"),
     "gradients_s": ("cloth_energy.py", "gradients"),
 }
@@ -40,7 +43,7 @@ def _cpu_model() -> str:
     return platform.machine()
 
 
-def _sheet(vertices: int):
+def _sheet(vertices: int, cg_iterations: int):
     from cosim.engines import cloth_mesh
     from cosim.engines.cloth import ClothEngine, ClothMaterial
 
@@ -48,7 +51,7 @@ def _sheet(vertices: int):
     mesh = cloth_mesh.rectangle((1.0, 1.0), (n, n), normal="y")
     edge = np.flatnonzero(np.isclose(mesh.vertices[:, 2], mesh.vertices[:, 2].min()))
     material = ClothMaterial(k_stretch=1000.0, k_bend=0.015, c_mass=0.0, density=0.2)
-    return ClothEngine(mesh, material, fixed=edge, frame_dt=2e-3)
+    return ClothEngine(mesh, material, fixed=edge, frame_dt=2e-3, cg_iterations=cg_iterations)
 
 
 def _split(profile: cProfile.Profile) -> dict[str, float]:
@@ -61,11 +64,13 @@ def _split(profile: cProfile.Profile) -> dict[str, float]:
     return out
 
 
-def measure(vertices: int, steps: int = 10, warmup: int = 2) -> dict:
-    """One sheet of about ``vertices`` vertices: medians over ``steps`` steps after ``warmup``."""
-    engine = _sheet(vertices)
+def measure(vertices: int, steps: int = 10, warmup: int = 2, cg_iterations: int = REFACTOR_AFTER) -> dict:
+    """One sheet of about ``vertices`` vertices: medians over ``steps`` steps after ``warmup``, with the
+    engine's linear solves (``cg_iterations`` 0: a fresh LU for every solve, as before ``cloth_linear``)."""
+    engine = _sheet(vertices, cg_iterations)
     for _ in range(warmup):
         engine.step({})
+    factorised = engine._factor.factorisations
     forward, iterations, records = [], [], []
     profile = cProfile.Profile()
     for _ in range(steps):
@@ -84,6 +89,7 @@ def measure(vertices: int, steps: int = 10, warmup: int = 2) -> dict:
         grad = engine.vjp(record, {"state": grad})["state"]
         backward.append(time.perf_counter() - t)
     split = {k: v / steps * 1e3 for k, v in _split(profile).items()}
+    forward_lu = engine._factor.factorisations - factorised
     return {
         "vertices": engine.mesh.n_vertices,
         "faces": len(engine.mesh.faces),
@@ -91,17 +97,23 @@ def measure(vertices: int, steps: int = 10, warmup: int = 2) -> dict:
         "forward_ms": 1e3 * float(np.median(forward)),
         "newton_iterations": float(np.mean(iterations)),
         "adjoint_ms": 1e3 * float(np.median(backward)),
+        "factorisations_per_step": (forward_lu + engine._adjoint_factor.factorisations) / steps,
         **{k.replace("_s", "_ms_per_step"): v for k, v in split.items()},
     }
 
 
 def run_cloth_step_bench(vertices: list[int], steps: int = 10) -> dict:
-    """Forward/adjoint cost per step for square sheets of about the given vertex counts."""
+    """Forward/adjoint cost per step for square sheets of about the given vertex counts, each with the
+    engine's linear solves and with a fresh LU for every solve ("direct")."""
     return {
         "hardware": f"{_cpu_model()}, {os.cpu_count()} logical CPUs",
         "settings": "1 m sheet, pinned edge, gravity, dt 2e-3 s, k_stretch 1000 N/m, k_bend 0.015 N m, 0.2 kg/m^2",
-        "results": [measure(v, steps=steps) for v in vertices],
+        "results": [measure(v, steps=steps) | _direct(measure(v, steps=steps, cg_iterations=0)) for v in vertices],
     }
+
+
+def _direct(result: dict) -> dict:
+    return {f"direct_{key}": result[key] for key in ("forward_ms", "adjoint_ms", "factorisations_per_step")}
 
 
 if __name__ == "__main__":

@@ -35,12 +35,15 @@ solve (prescribed positions). External forces ``forces`` (V, 3) [N] are constant
 inertia term only, (m + A)(v_{n+1} - v_n) / h, not gravity or damping (``cosim.couplers.mpm_cloth``).
 
 Newton: the search direction uses the exact Hessian when its free block is positive definite (read
-off the pivots of a symmetric-mode LU), else the per-element Hessians projected to PSD (batched
-eigh), rigid-contact friction by its majorizing curvature (``cloth_contact.point_hessians``). Projection alone always descends but converges only linearly where the exact Hessian differs
-(compressed ARAP faces, bent hinges): measured, it stalled at 1e-8 N on a crumpled sheet, while the
-exact Hessian, positive definite there thanks to M / h^2, converges quadratically. Backtracking line
-search on E (round-off aware), sparse LU (SuperLU, MMD ordering on A^T + A, symmetric mode, the CSC
-pattern built once per mesh) per iteration; converged
+off the pivots of a symmetric-mode LU, or met as negative curvature by conjugate gradients), else the
+per-element Hessians projected to PSD (batched eigh), rigid-contact friction by its majorizing curvature
+(``cloth_contact.point_hessians``). Projection alone always descends but converges only linearly where the
+exact Hessian differs (compressed ARAP faces, bent hinges): measured, it stalled at 1e-8 N on a crumpled
+sheet, while the exact Hessian, positive definite there thanks to M / h^2, converges quadratically.
+Backtracking line search on E (round-off aware); the linear solves (to float64's floor) by conjugate
+gradients preconditioned with the sparse LU of an earlier iteration or step (SuperLU, MMD ordering on
+A^T + A, symmetric mode, the CSC pattern built once per mesh), factorised afresh only when they stop
+converging fast (``cloth_linear``); converged
 when ||grad E||_inf over free dofs <= tol, tol = max(rtol * m_max * 9.81 m/s^2 (+ rtol max|f|),
 round-off floor 64 eps (|x|_max + size) (m_max (1 + c_m h) / h^2 + 8 k_stretch + 8 k_bend / l_min^2
 + the stiffest active rigid-contact spring)),
@@ -58,6 +61,7 @@ import numpy as np
 from cosim.engines.cloth_adjoint import ClothAdjoint
 from cosim.engines.cloth_contact import ContactSet, RigidContact
 from cosim.engines.cloth_energy import ElasticEnergy, SparsePattern, hessian_entries, project_psd
+from cosim.engines.cloth_linear import REFACTOR_AFTER, ReusedFactorisation
 from cosim.engines.cloth_mesh import ClothMesh
 from cosim.engines.cloth_solve import ClothSolver, StepData
 from cosim.errors import InputError
@@ -123,6 +127,7 @@ class ClothEngine(ClothAdjoint, ClothSolver):
         name: str = "cloth",
         rtol: float = 1e-10,
         max_iterations: int = 200,
+        cg_iterations: int = REFACTOR_AFTER,
     ) -> None:
         if not frame_dt > 0:
             raise InputError(f"cloth '{name}': frame_dt must be > 0, got {frame_dt}")
@@ -162,6 +167,8 @@ class ClothEngine(ClothAdjoint, ClothSolver):
         self.steps = 0
         self.last_solve: dict = {}
         self.contact: RigidContact | None = None
+        self.cg_iterations = int(cg_iterations)  # a solve's with an earlier factor (0: factorise every solve)
+        self._factor = ReusedFactorisation(self.cg_iterations)  # the Newton solves' (``cloth_linear``)
 
     def attach_rigid_contact(self, thickness: float, friction: float = 0.0) -> None:
         """Let the cloth collide with rigid bodies (``cosim.engines.cloth_contact``): contact thickness
@@ -211,7 +218,9 @@ class ClothEngine(ClothAdjoint, ClothSolver):
         return float(np.linalg.norm(self.v, axis=1).max()) if len(self.v) else 0.0
 
     def set_state(self, state: dict[str, np.ndarray]) -> None:
-        """Restore a ``state()``; the next step is bitwise the same."""
+        """Restore a ``state()``. The linear solves' reused factor is dropped, so a rollout from here repeats
+        bit for bit; against the run that went on from this state, the next step can differ in the last bits of
+        its final Newton update (solved by conjugate gradients preconditioned with another factor)."""
         V = self.mesh.n_vertices
         for key in ("x", "v"):
             if np.shape(state[key]) != (V, 3):
@@ -220,6 +229,7 @@ class ClothEngine(ClothAdjoint, ClothSolver):
                 )
         self.x = np.array(state["x"], dtype=np.float64)
         self.v = np.array(state["v"], dtype=np.float64)
+        self._factor.forget()
 
     def material(self) -> dict[str, np.ndarray]:
         """k_stretch [N/m], k_bend [N m], c_mass [1/s], density [kg/m^2], each a 0-d array."""
@@ -230,6 +240,7 @@ class ClothEngine(ClothAdjoint, ClothSolver):
         current = {k: float(getattr(self._material, k)) for k in MATERIAL_KEYS}
         current.update({k: float(np.asarray(values[k])) for k in MATERIAL_KEYS if k in values})
         self._material = ClothMaterial(**current)
+        self._factor.forget()
 
     def parameters(self) -> list:
         """Initial state x, v; the action sequence (with control groups); the material parameters."""

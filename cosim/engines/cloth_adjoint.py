@@ -21,10 +21,12 @@ point, normal and the point's start position s_i then get (df_i/dtheta)^T (dL/df
 the direct path plus the solve's; s_i's goes to dL/dx_n, and so does the planes' own (the planes'
 Jacobians with respect to the queried point s_i). Output "boundaries" {source: {point, normal, velocity}}
 (velocity: the body's surface under each point, which friction is relative to).
-H_ff may be indefinite (the unprojected Hessian of a buckled cloth): it is
-factorised by a symmetric-mode LU when it is positive definite, else by LU with partial pivoting; an exactly singular H_ff raises ``SimulationError``. The
+H_ff may be indefinite (the unprojected Hessian of a buckled cloth): it is solved by conjugate gradients
+preconditioned with an earlier step's factor of this backward pass (``cloth_linear``) or a symmetric-mode LU
+while it is positive definite, else by LU with partial pivoting; an exactly singular H_ff raises
+``SimulationError``. The
 mixin reads the engine's ``frame_dt``, ``gravity``, ``free``, ``free_dofs``, ``pres_dofs``,
-``ctrl_vertex``, ``ctrl_group``, ``controls``, ``energy``, ``_ff``, ``_pf`` and helpers.
+``ctrl_vertex``, ``ctrl_group``, ``controls``, ``energy``, ``cg_iterations``, ``_ff``, ``_pf`` and helpers.
 """
 
 from __future__ import annotations
@@ -32,19 +34,31 @@ from __future__ import annotations
 import numpy as np
 from scipy.sparse.linalg import splu
 
+from cosim.engines.cloth_linear import ReusedFactorisation
 from cosim.errors import SimulationError
-
-SPD_LU = {"permc_spec": "MMD_AT_PLUS_A", "diag_pivot_thresh": 0.0, "options": {"SymmetricMode": True}}
-
-
-def _positive_definite(lu) -> bool:
-    """A symmetric matrix factorised without row pivoting (P_r = P_c) is positive definite iff every
-    pivot (diagonal of U) is positive."""
-    return bool(np.array_equal(lu.perm_r, lu.perm_c) and np.all(lu.U.diagonal() > 0))
 
 
 class ClothAdjoint:
     """``vjp`` of the cloth engine."""
+
+    _adjoint_factor: ReusedFactorisation | None = None
+    _adjoint_next: int | None = None  # the step a backward pass reaches next (its factor is reused there only)
+
+    def _adjoint_solve(self, H, b: np.ndarray, step: int) -> np.ndarray:
+        """H^-1 b for the symmetric H of recorded step ``step``, to round-off. The factor of an earlier solve
+        preconditions this one only within one backward pass (steps in turn, last to first), so that a
+        pass's gradients depend on its records alone."""
+        if self._adjoint_factor is None or step != self._adjoint_next:
+            self._adjoint_factor = ReusedFactorisation(self.cg_iterations)
+        self._adjoint_next = step - 1
+        try:
+            lam = self._adjoint_factor.solve_spd(H, b)  # the usual case, and faster than pivoting
+            return splu(H).solve(b, trans="T") if lam is None else lam
+        except RuntimeError as exc:
+            raise SimulationError(
+                f"cloth '{self.name}': the exact Hessian of step {step} is singular ({exc}); "
+                "its adjoint is undefined there"
+            ) from exc
 
     def vjp(self, record, grad_outputs: dict) -> dict:
         """{"state": {"x", "v"}, "reactions": {source: {"force", "point"}}} (dL/d(outputs), missing keys zero) ->
@@ -69,16 +83,7 @@ class ClothAdjoint:
         if len(self.free_dofs):
             entries = self._element_hessians(record.x_next, mat, record.contacts)
             H = self._ff.matrix(entries, self._mass_diagonal(mat, record.added_mass))
-            try:
-                lu = splu(H, **SPD_LU)  # the usual case, and faster than pivoting
-                if not _positive_definite(lu):
-                    lu = splu(H)
-            except RuntimeError as exc:
-                raise SimulationError(
-                    f"cloth '{self.name}': the exact Hessian of step {record.step} is singular ({exc}); "
-                    "its adjoint is undefined there"
-                ) from exc
-            lam[self.free_dofs] = lu.solve(gbar.reshape(-1)[self.free_dofs], trans="T")
+            lam[self.free_dofs] = self._adjoint_solve(H, gbar.reshape(-1)[self.free_dofs], record.step)
             coupling[self.pres_dofs] = self._pf.matrix(entries) @ lam[self.free_dofs]
         lam, coupling = lam.reshape(V, 3), coupling.reshape(V, 3)
         m = self.masses(mat.density)[:, None]

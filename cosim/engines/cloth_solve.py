@@ -9,8 +9,8 @@ from typing import Any
 import numpy as np
 from scipy.sparse.linalg import splu
 
-from cosim.engines.cloth_adjoint import SPD_LU, _positive_definite
 from cosim.engines.cloth_contact import ContactSet
+from cosim.engines.cloth_linear import SPD_LU
 from cosim.errors import SimulationError
 
 LINE_SEARCH_HALVINGS = 30
@@ -32,7 +32,8 @@ class StepData:
 
 class ClothSolver:
     """``_solve`` and its parts; reads the engine's ``free``, ``free_dofs``, ``_ff``, ``max_iterations``,
-    ``_gradient``, ``_potential``, ``_tolerance``, ``_mass_diagonal`` and ``_element_hessians``."""
+    ``_gradient``, ``_potential``, ``_tolerance``, ``_mass_diagonal``, ``_element_hessians`` and ``_factor``
+    (a ``ReusedFactorisation``)."""
 
     def _solve(self, d: StepData, x_pres: np.ndarray) -> tuple[np.ndarray, int, float, float]:
         """Projected Newton from x^ (prescribed vertices at ``x_pres``); (x, iterations, residual, tol)."""
@@ -69,14 +70,15 @@ class ClothSolver:
         """Newton direction over the free dofs: with the exact Hessian when ``exact`` and it is positive
         definite (then Newton converges quadratically), else with the per-element PSD-projected one
         (always a descent direction, and the stiffer model where elements are compressed or bent; alone
-        it converges only linearly once the exact Hessian would do)."""
+        it converges only linearly once the exact Hessian would do). Solved to float64's floor: a looser
+        solve leaves Newton's last iterate noisier (central differences through the step with it)."""
         diagonal = self._mass_diagonal(d.material, d.added_mass)
         for project in (False, True) if exact else (True,):
-            entries = self._element_hessians(x, d.material, d.contacts, project)
-            lu = splu(self._ff.matrix(entries, diagonal), **SPD_LU)
-            if project or _positive_definite(lu):
-                return lu.solve(-g)
-        raise AssertionError("unreachable")
+            H = self._ff.matrix(self._element_hessians(x, d.material, d.contacts, project), diagonal)
+            dx = self._factor.solve_spd(H, -g)
+            if dx is not None:
+                return dx
+        return splu(H, **SPD_LU).solve(-g)  # projected, PSD only to round-off: as direct as before
 
     def _line_search(self, x: np.ndarray, dx: np.ndarray, g: np.ndarray, d: StepData) -> tuple[np.ndarray, float]:
         """Backtracking on E along the free-dof direction dx: accept a sufficient decrease (Armijo,

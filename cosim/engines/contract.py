@@ -9,7 +9,9 @@ Engines
 -------
 An engine holds its state between macro steps. ``state()`` returns it as a dict of
 named NumPy arrays (float64) and ``set_state(s)`` restores it so that the next step is
-bit for bit the same; ``step(inputs) -> (outputs, record)`` advances one macro step
+bit for bit the same (the cloth: to the last bits of its final Newton step, whose linear solve
+is preconditioned by an earlier step's factorisation, dropped by a restore; a rollout from a
+restored state repeats bit for bit); ``step(inputs) -> (outputs, record)`` advances one macro step
 (the frame ``frame_dt``) and ``vjp(record, grad_outputs) -> grad_inputs`` is the
 vector-Jacobian product of that recorded step with respect to its state and every
 input. Nothing is passed any other way: no hidden seeds, no call-order conventions.
