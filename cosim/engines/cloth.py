@@ -167,7 +167,7 @@ class ClothEngine(ClothAdjoint, ClothSolver):
         self.steps = 0
         self.last_solve: dict = {}
         self.contact: RigidContact | None = None
-        self.cg_iterations = int(cg_iterations)  # a solve's with an earlier factor (0: factorise every solve)
+        self.cg_iterations = int(cg_iterations)  # CG iterations a solve may take (0: a fresh LU for each)
         self._factor = ReusedFactorisation(self.cg_iterations)  # the Newton solves' (``cloth_linear``)
 
     def attach_rigid_contact(self, thickness: float, friction: float = 0.0) -> None:
