@@ -12,9 +12,12 @@ energies are linear in their stiffness, so d(gradient)/dk is the unit gradient):
   rest mesh, theta the signed dihedral angle (``hinge_angle``; theta0 its rest value, so curved rest
   shapes rest as they are). Valid for |theta| < pi (a fully folded hinge wraps around).
 
-Gradients and Hessians: ``jax.vmap`` of ``jax.grad`` / ``jax.hessian`` of the per-element energies,
-jitted, float64. Assembly: ``SparsePattern`` fixes the CSC structure of a block of the global
-Hessian once per mesh and fills it with ``numpy.bincount``.
+Gradients in closed form (``membrane_gradient``, ``bending_gradient``; the tests hold them to
+``jax.grad`` of the energies), Hessians as ``jax.jacfwd`` of those gradients (the bending one as
+2 w (grad theta grad theta^T + (theta - theta0) d(grad theta))), each ``jax.vmap``-ed and jitted,
+float64: about twice as fast as ``jax.hessian`` of the energies (forward over reverse mode through
+atan2 and the square roots). Assembly: ``SparsePattern`` fixes the CSC structure of a block of the
+global Hessian once per mesh and fills it with ``numpy.bincount``.
 """
 
 from __future__ import annotations
@@ -52,6 +55,19 @@ def membrane_energy(xe: jnp.ndarray, Dm_inv: jnp.ndarray, area: jnp.ndarray) -> 
     return area * (I1 - 2.0 * jnp.sqrt(I1 + 2.0 * J + GUARD**2) + 2.0)
 
 
+def membrane_gradient(xe: jnp.ndarray, Dm_inv: jnp.ndarray, area: jnp.ndarray) -> jnp.ndarray:
+    """d(membrane_energy)/dxe (3, 3) [m]: with s = sqrt(I1 + 2 J + GUARD^2), dE/dF = A (2 F - 2 (F + dJ/dF) / s)
+    and dJ/dF = [C11 f0 - C01 f1, C00 f1 - C01 f0] / J (f0, f1 the columns of F), through F = Ds Dm_inv."""
+    F = jnp.stack([xe[1] - xe[0], xe[2] - xe[0]], axis=1) @ Dm_inv
+    f0, f1 = F[:, 0], F[:, 1]
+    C00, C11, C01 = f0 @ f0, f1 @ f1, f0 @ f1
+    J = jnp.sqrt(C00 * C11 - C01 * C01 + GUARD**2)
+    s = jnp.sqrt(C00 + C11 + 2.0 * J + GUARD**2)
+    dJ = jnp.stack([C11 * f0 - C01 * f1, C00 * f1 - C01 * f0], axis=1) / J
+    dDs = area * (2.0 * F - (2.0 / s) * (F + dJ)) @ Dm_inv.T
+    return jnp.stack([-dDs[:, 0] - dDs[:, 1], dDs[:, 0], dDs[:, 1]])
+
+
 def hinge_angle(xe: jnp.ndarray) -> jnp.ndarray:
     """Signed dihedral angle [rad] of hinge (a, b, c, d) (see ``cloth_mesh``): 0 when flat, from the
     normals n1 = e x (c - a) and n2 = (d - a) x e, e = b - a, about the axis e."""
@@ -63,9 +79,39 @@ def hinge_angle(xe: jnp.ndarray) -> jnp.ndarray:
     return jnp.arctan2(sin, jnp.dot(n1, n2))
 
 
+def hinge_angle_gradient(xe: jnp.ndarray) -> jnp.ndarray:
+    """d(hinge_angle)/dxe (4, 3) [rad/m]: the opposite vertices move theta along their face's normal,
+    -|e| n1 / |n1|^2 (c) and -|e| n2 / |n2|^2 (d); the edge's ends share those by where c and d project onto
+    the edge (t = (p - a).e / |e|^2: b takes -t, a -(1 - t)), so that a translation leaves theta unchanged."""
+    a, b, c, d = xe
+    e = b - a
+    n1 = jnp.cross(e, c - a)
+    n2 = jnp.cross(d - a, e)
+    e2 = jnp.dot(e, e)
+    g_c = -jnp.sqrt(e2) * n1 / jnp.dot(n1, n1)
+    g_d = -jnp.sqrt(e2) * n2 / jnp.dot(n2, n2)
+    t_c, t_d = jnp.dot(c - a, e) / e2, jnp.dot(d - a, e) / e2
+    return jnp.stack([-(1.0 - t_c) * g_c - (1.0 - t_d) * g_d, -t_c * g_c - t_d * g_d, g_c, g_d])
+
+
 def bending_energy(xe: jnp.ndarray, weight: jnp.ndarray, theta0: jnp.ndarray) -> jnp.ndarray:
     """w (theta - theta0)^2 of one hinge, xe (4, 3) [m] (unit stiffness)."""
     return weight * (hinge_angle(xe) - theta0) ** 2
+
+
+def bending_gradient(xe: jnp.ndarray, weight: jnp.ndarray, theta0: jnp.ndarray) -> jnp.ndarray:
+    """d(bending_energy)/dxe (4, 3) [1/m]."""
+    return 2.0 * weight * (hinge_angle(xe) - theta0) * hinge_angle_gradient(xe)
+
+
+def bending_hessian(xe: jnp.ndarray, weight: jnp.ndarray, theta0: jnp.ndarray) -> jnp.ndarray:
+    """d^2(bending_energy)/dxe^2 (4, 3, 4, 3) [1/m^2]."""
+    g = hinge_angle_gradient(xe)
+    return (
+        2.0
+        * weight
+        * (jnp.einsum("ij,kl->ijkl", g, g) + (hinge_angle(xe) - theta0) * jax.jacfwd(hinge_angle_gradient)(xe))
+    )
 
 
 CHUNK = 512  # elements per jitted call: one compile per process whatever the mesh size
@@ -90,8 +136,8 @@ def _chunked(fn):
     return apply
 
 
-_MEMBRANE = tuple(_chunked(f) for f in (membrane_energy, jax.grad(membrane_energy), jax.hessian(membrane_energy)))
-_BENDING = tuple(_chunked(f) for f in (bending_energy, jax.grad(bending_energy), jax.hessian(bending_energy)))
+_MEMBRANE = tuple(_chunked(f) for f in (membrane_energy, membrane_gradient, jax.jacfwd(membrane_gradient)))
+_BENDING = tuple(_chunked(f) for f in (bending_energy, bending_gradient, bending_hessian))
 _ANGLES = _chunked(hinge_angle)
 
 
