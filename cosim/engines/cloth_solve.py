@@ -40,7 +40,7 @@ class ClothSolver:
         x = d.x_hat.copy()
         x[~self.free] = x_pres[~self.free]
         tol = self._tolerance(d)
-        residual, history, best, alpha = np.inf, [], None, 1.0
+        residual, history, best, alpha, potential = np.inf, [], None, 1.0, None
         for it in range(self.max_iterations + 1):
             g = self._gradient(x, d).reshape(-1)[self.free_dofs]
             residual = float(np.abs(g).max()) if len(g) else 0.0
@@ -59,7 +59,8 @@ class ClothSolver:
                 break
             # after a step the line search had to cut below half, the exact Hessian's model is poor here
             # (cloth_catch, step 963: 52 iterations of steps cut to 1/256..1/2048 with it, 26 so)
-            x, alpha = self._line_search(x, self._direction(x, g, d, exact=alpha >= 0.5), g, d)
+            direction = self._direction(x, g, d, exact=alpha >= 0.5)
+            x, alpha, potential = self._line_search(x, direction, g, d, potential)
         raise SimulationError(
             f"cloth '{self.name}': Newton did not converge in step {self.steps} within {self.max_iterations} iterations: "
             f"residual ||grad E||_inf = {residual:.3e} N > tolerance {tol:.3e} N; "
@@ -80,22 +81,26 @@ class ClothSolver:
                 return dx
         return splu(H, **SPD_LU).solve(-g)  # projected, PSD only to round-off: as direct as before
 
-    def _line_search(self, x: np.ndarray, dx: np.ndarray, g: np.ndarray, d: StepData) -> tuple[np.ndarray, float]:
+    def _line_search(
+        self, x: np.ndarray, dx: np.ndarray, g: np.ndarray, d: StepData, at_x: tuple[float, float] | None = None
+    ) -> tuple[np.ndarray, float, tuple[float, float]]:
         """Backtracking on E along the free-dof direction dx: accept a sufficient decrease (Armijo,
         c = 1e-4); once the predicted decrease alpha |g . dx| is below E's round-off (near convergence)
         E cannot rank the points, so accept any step that does not raise E beyond its round-off.
-        Returns the new positions and the step length alpha taken."""
-        E0, noise = self._potential(x, d)
+        ``at_x``: ``_potential`` at x where the last line search found it. Returns the new positions, the step
+        length alpha taken and ``_potential`` there."""
+        E0, noise = self._potential(x, d) if at_x is None else at_x
         slope = float(g @ dx)
         alpha = 1.0
         for _ in range(LINE_SEARCH_HALVINGS):
             trial = x.copy()
             trial.reshape(-1)[self.free_dofs] += alpha * dx
-            E = self._potential(trial, d)[0]
+            at_trial = self._potential(trial, d)
+            E = at_trial[0]
             if E <= E0 + 1e-4 * alpha * slope or (alpha * abs(slope) <= noise and E <= E0 + noise):
-                return trial, alpha
+                return trial, alpha, at_trial
             alpha *= 0.5
-        return trial, alpha
+        return trial, alpha, at_trial
 
 
 STALL_WINDOW, STALL_FACTOR = 4, 100.0
