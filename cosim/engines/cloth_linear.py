@@ -8,7 +8,7 @@ steps old, conjugate gradients reach float64's floor in 5-7 iterations on the fa
 cloth` (measured at 2,025 and 10,000 vertices over 6-8 steps). As the factor ages the iterations grow (the
 default scene's 169-vertex towel, pressed by the MPM: 4 at first, 15 after 100 solves), so a solve that took
 more than ``STALE_AFTER`` makes the next one factorise afresh (an LU costs 35-50 solves with it; refreshed at
-8 iterations, a solve averages about 6). Where a solve does not converge within ``REFACTOR_AFTER`` iterations
+8 iterations, a solve averages about 7). Where a solve does not converge within ``REFACTOR_AFTER`` iterations
 the matrix at hand is factorised and kept; the result is always checked against the true residual, so a
 solve is as accurate as a direct one or it is direct.
 """
