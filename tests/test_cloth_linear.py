@@ -41,7 +41,7 @@ def test_cg_with_an_older_factor_solves_as_accurately_as_a_direct_lu():
     exact = spsolve(new, b)
     assert x is not None and not indefinite
     assert np.abs(x - exact).max() <= 1e-10 * np.abs(exact).max()
-    assert len(calls) <= 10, len(calls)
+    assert len(calls) <= 12, len(calls)  # 8 measured
     assert preconditioned_cg(new, b, lambda r: r, 40).x is None
 
 
@@ -91,8 +91,9 @@ def test_an_aged_factor_is_refreshed_where_the_hessian_keeps_changing(monkeypatc
     """A heavy band of added mass (20x the sheet's own, as material pressing on it) sweeps across the sheet:
     each step's Hessian differs from the last one's along the band, and solves with an old factor take 15-25
     iterations. A solve that took more than STALE_AFTER makes the next factorise afresh, which keeps the
-    preconditioned solves at 7-8 iterations on average (measured: 12.7 without the refresh) for a
-    factorisation every few steps; the positions end within the Newton tolerance of direct solves."""
+    preconditioned solves at 7.3 iterations on average (12.7 without the refresh) for 20 factorisations in
+    40 steps (both asserted with room for another CPU's round-off); the positions end within the Newton
+    tolerance of direct solves."""
     iterations = []
     solve = cloth_linear.preconditioned_cg
 
@@ -112,6 +113,6 @@ def test_an_aged_factor_is_refreshed_where_the_hessian_keeps_changing(monkeypatc
         ends.append(engine.x.copy())
         if cg_iterations:
             factorisations = engine._factor.factorisations
-    assert np.mean(iterations) <= 8 and factorisations <= 25, (np.mean(iterations), factorisations)
+    assert np.mean(iterations) <= 10 and factorisations <= 30, (np.mean(iterations), factorisations)
     inertia_stiffness = engine.masses().max() / engine.frame_dt**2
     assert np.abs(ends[0] - ends[1]).max() <= 10 * engine.last_solve["tolerance"] / inertia_stiffness
