@@ -76,7 +76,7 @@ def test_a_falling_sheet_factorises_rarely_and_matches_direct_solves_forward_and
         grad = {"x": rng.standard_normal(engine.x.shape), "v": rng.standard_normal(engine.x.shape)}
         for record in reversed(records):
             grad = engine.vjp(record, {"state": grad})["state"]
-        lu = engine._factor.factorisations + engine._adjoint_factor.factorisations
+        lu = engine.factorisations
         solves = sum(r.iterations for r in records) + len(records)  # Newton directions and adjoint solves
         runs[cg_iterations] = (engine.x.copy(), grad, lu, solves, engine)
     (x, grad, lu, _, engine), (x_direct, grad_direct, lu_direct, solves, _) = runs[25], runs[0]
@@ -112,7 +112,7 @@ def test_an_aged_factor_is_refreshed_where_the_hessian_keeps_changing(monkeypatc
             engine.step({"added_mass": np.where(band, 20 * m, 0.0)})
         ends.append(engine.x.copy())
         if cg_iterations:
-            factorisations = engine._factor.factorisations
+            factorisations = engine.factorisations
     assert np.mean(iterations) <= 10 and factorisations <= 30, (np.mean(iterations), factorisations)
     inertia_stiffness = engine.masses().max() / engine.frame_dt**2
     assert np.abs(ends[0] - ends[1]).max() <= 10 * engine.last_solve["tolerance"] / inertia_stiffness

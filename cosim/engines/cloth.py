@@ -169,6 +169,12 @@ class ClothEngine(ClothAdjoint, ClothSolver):
         self.contact: RigidContact | None = None
         self.cg_iterations = int(cg_iterations)  # CG iterations a solve may take (0: a fresh LU for each)
         self._factor = ReusedFactorisation(self.cg_iterations)  # the Newton solves' (``cloth_linear``)
+        self._adjoint_factor = ReusedFactorisation(self.cg_iterations)  # the adjoints', within a backward pass
+
+    @property
+    def factorisations(self) -> int:
+        """Sparse LU factorisations of the Hessian so far, Newton steps and adjoints (``cloth_linear``)."""
+        return self._factor.factorisations + self._adjoint_factor.factorisations
 
     def attach_rigid_contact(self, thickness: float, friction: float = 0.0) -> None:
         """Let the cloth collide with rigid bodies (``cosim.engines.cloth_contact``): contact thickness

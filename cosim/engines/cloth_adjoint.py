@@ -26,7 +26,7 @@ preconditioned with an earlier step's factor of this backward pass (``cloth_line
 while it is positive definite, else by LU with partial pivoting; an exactly singular H_ff raises
 ``SimulationError``. The
 mixin reads the engine's ``frame_dt``, ``gravity``, ``free``, ``free_dofs``, ``pres_dofs``,
-``ctrl_vertex``, ``ctrl_group``, ``controls``, ``energy``, ``cg_iterations``, ``_ff``, ``_pf`` and helpers.
+``ctrl_vertex``, ``ctrl_group``, ``controls``, ``energy``, ``_adjoint_factor``, ``_ff``, ``_pf`` and helpers.
 """
 
 from __future__ import annotations
@@ -41,15 +41,15 @@ from cosim.errors import SimulationError
 class ClothAdjoint:
     """``vjp`` of the cloth engine."""
 
-    _adjoint_factor: ReusedFactorisation | None = None
+    _adjoint_factor: ReusedFactorisation  # the engine's
     _adjoint_next: int | None = None  # the step a backward pass reaches next (its factor is reused there only)
 
     def _adjoint_solve(self, H, b: np.ndarray, step: int) -> np.ndarray:
         """H^-1 b for the symmetric H of recorded step ``step``, to round-off. The factor of an earlier solve
         preconditions this one only within one backward pass (steps in turn, last to first), so that a
         pass's gradients depend on its records alone."""
-        if self._adjoint_factor is None or step != self._adjoint_next:
-            self._adjoint_factor = ReusedFactorisation(self.cg_iterations)
+        if step != self._adjoint_next:
+            self._adjoint_factor.forget()
         self._adjoint_next = step - 1
         try:
             lam = self._adjoint_factor.solve_spd(H, b)  # the usual case, and faster than pivoting
