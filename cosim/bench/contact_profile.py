@@ -64,7 +64,8 @@ def run_contact_profile(out_dir: Path, quick: bool = False, arch: str = "cpu", c
         "",
         f"- wall: {1e3 * wall / frames:.3f} ms a frame (profiler on); in kernels {in_kernels:.3f} ms",
         (
-            f"- {per_frame['launches']:.1f} launches, {per_frame['arrays']:.1f} host arrays and {per_frame['tasks']:.1f} "
+            f"- {per_frame['launches']:.1f} launches ({per_frame['planned']:.1f} of them through their plans, not "
+            f"Taichi's call: `cosim.engines.kernel_launch`), {per_frame['arrays']:.1f} host arrays and {per_frame['tasks']:.1f} "
             f"tasks a frame, {per_frame['serial']:.1f} of them serial (on a GPU each task is a launch of its own, a "
             "serial one on one thread)"
         ),

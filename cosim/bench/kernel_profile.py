@@ -67,20 +67,31 @@ def task_counts(records: list, kernel: str | None = None) -> dict[str, int]:
 @contextmanager
 def counting_launches() -> Iterator[dict]:
     """Counts Taichi kernel launches and the host (NumPy) arrays handed to them while inside (on a GPU each
-    host array is a copy and a wait): yields {"launches": n, "arrays": m}."""
+    host array is a copy and a wait): yields {"launches": n, "arrays": m, "planned": k}, k of the launches
+    through their plan (``cosim.engines.kernel_launch``), not Taichi's call."""
     import numpy as np
     from taichi.lang import kernel_impl
 
-    original = kernel_impl.Kernel.__call__
-    tally = {"launches": 0, "arrays": 0}
+    from cosim.engines import kernel_launch
 
-    def counted(self, *args, **kwargs):
+    original, lean = kernel_impl.Kernel.__call__, kernel_launch._set_and_launch
+    tally = {"launches": 0, "arrays": 0, "planned": 0}
+
+    def count(args: tuple) -> None:
         tally["launches"] += 1
         tally["arrays"] += sum(isinstance(a, np.ndarray) for a in args)
+
+    def counted(self, *args, **kwargs):  # Taichi's call (a first call, a field's own kernels)
+        count(args)
         return original(self, *args, **kwargs)
 
-    kernel_impl.Kernel.__call__ = counted
+    def counted_lean(plan, kinds, args):  # a planned launch (``cosim.engines.kernel_launch``)
+        count(args)
+        tally["planned"] += 1
+        return lean(plan, kinds, args)
+
+    kernel_impl.Kernel.__call__, kernel_launch._set_and_launch = counted, counted_lean
     try:
         yield tally
     finally:
-        kernel_impl.Kernel.__call__ = original
+        kernel_impl.Kernel.__call__, kernel_launch._set_and_launch = original, lean
