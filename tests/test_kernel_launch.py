@@ -54,34 +54,40 @@ def taichi_calls(monkeypatch) -> list:
 
 
 def calls_of_every_kind(add):
-    """add's calls: both signs, float64 and float32 arrays, ints of numpy and Python, twice over."""
+    """add's calls: both signs, float64 and float32 NumPy arrays and a Taichi one, ints of NumPy and
+    Python, twice over."""
     x64 = np.linspace(-1.0, 2.0, N)
+    on_device = ti.ndarray(ti.f64, N)
+    on_device.from_numpy(x64[::-1].copy())
     for a, k, x, negate in [
         (1.5, 2, x64, False),
         (1.5, 2, x64, True),
         (0.25, np.int32(-3), x64.astype(np.float32), False),
+        (3.0, -1, on_device, True),
         (-0.5, 1, x64, False),  # planned from here on
         (2, 4, x64, True),
         (0.75, 5, x64.astype(np.float32), False),
+        (-1.25, 2, on_device, True),
     ]:
         add(a, k, x, negate)
 
 
 def test_planned_launches_run_the_kernel_taichi_compiled_for_their_template_and_array_arguments(taichi_calls):
-    """The second of each kind of call (sign, array dtype) launches through its plan and leaves y bit for bit
-    where Taichi's own calls do; a plan that ignored the template argument or the array's dtype would add
-    with the wrong sign or read float32 as float64."""
+    """The second of each kind of call (sign, array dtype, NumPy's or Taichi's array) launches through its
+    plan and leaves y bit for bit where Taichi's own calls do; a plan that ignored the template argument or
+    the array's dtype or kind would add with the wrong sign, read float32 as float64 or a device array as a
+    host one."""
     mine, reference = Accumulator(), Accumulator()
     calls_of_every_kind(mine.add)
     calls_of_every_kind(taichis_own(reference, "add"))
     np.testing.assert_array_equal(mine.y.to_numpy(), reference.y.to_numpy())
-    assert taichi_calls == ["add"] * 3  # the first call of each of the three kinds
+    assert taichi_calls == ["add"] * 4  # the first call of each of the four kinds
     out, want = np.zeros((N, 2)), np.zeros((N, 2))
     mine.pairs(out)
     mine.pairs(out)  # planned: a vector element type
     taichis_own(reference, "pairs")(want)
     np.testing.assert_array_equal(out, want)
-    assert taichi_calls == ["add"] * 3 + ["pairs"]
+    assert taichi_calls == ["add"] * 4 + ["pairs"]
 
 
 def test_what_a_plan_does_not_cover_goes_through_taichi_and_its_checks(taichi_calls):

@@ -5,22 +5,23 @@ argument into a template key (several ``isinstance`` tests each), looks the comp
 checks the fields are placed, then sets each argument through a chain of type tests. A small scene's frame
 launches ten kernels whose loops take microseconds (``cosim bench contact --profile``), and on a GPU the
 host's time is the frame's time. ``BoundKernel`` does that sorting once per (instance, kernel, argument
-kinds): the first call of a kind goes through Taichi (which compiles it and checks everything), and later
-calls with template arguments that are the same objects (or equal numbers, strings, tuples of them), the
-same scalar types and NumPy arrays of the same dtype and dimensions only set the scalars and array pointers
-on a launch context and launch the kernel Taichi compiled for them: the same compiled kernel with the same
-arguments, hence the same numbers.
+kinds): the first call of a kind goes through Taichi (which compiles it and checks everything); later calls
+with template arguments that are the same objects (or equal numbers, strings, tuples of them), scalars of
+the kernel's types and arrays (NumPy's or Taichi's) of the same dtype and dimensions only set the scalars
+and array pointers on a launch context and launch the code Taichi compiled for them: the same compiled
+kernel with the same arguments, hence the same numbers.
 
-Taichi's path still takes whatever the lean path does not cover: keyword arguments, Taichi ndarrays,
-matrix, struct and argument-pack arguments, kernels that return values or print, non-contiguous arrays,
-Taichi's own autodiff tapes, a call while new fields wait to be placed, and a Taichi runtime started anew.
-Taichi is pinned (1.7.4): the launch-context calls used here are those its ``launch_kernel`` makes.
+Taichi's call still takes whatever the lean path does not cover: keyword arguments, matrix, struct and
+argument-pack arguments, kernels that return values or print, non-contiguous arrays, Taichi's own autodiff
+tapes, a call while new fields wait to be placed, and a Taichi runtime started anew. Taichi is pinned
+(1.7.4): the launch-context calls used here are those its ``launch_kernel`` makes.
 """
 
 from __future__ import annotations
 
 import numpy as np
 from taichi.lang import impl
+from taichi.lang._ndarray import Ndarray
 from taichi.lang.enums import Layout
 from taichi.lang.exception import TaichiCompilationError, TaichiRuntimeError, handle_exception_from_cpp
 from taichi.lang.util import cook_dtype
@@ -70,13 +71,15 @@ def _contains(key, marker) -> bool:
 
 
 class _Plan:
-    """One compiled instance of a kernel and the program it was compiled for."""
+    """One compiled instance of a kernel: Taichi's kernel, its compiled code (a reference into the program's
+    cache of compiled kernels, which keeps it for the program's life) and that program."""
 
-    __slots__ = ("compiled", "held", "program")
+    __slots__ = ("code", "compiled", "held", "program")
 
     def __init__(self, compiled, program, held: tuple):
         self.compiled = compiled  # Taichi's C++ kernel
         self.program = program
+        self.code = program.compile_kernel(program.config(), program.get_device_caps(), compiled)  # served cached
         self.held = held  # the template arguments, alive while their ids key this plan
 
 
@@ -154,9 +157,12 @@ def _call_key(kinds: tuple, args: tuple):
             if not isinstance(value, (float, int, np.floating, np.integer)):
                 return None
         elif kind == _ARRAY:
-            if type(value) is not np.ndarray or not value.flags.c_contiguous:
+            if type(value) is np.ndarray and value.flags.c_contiguous:
+                key.append((value.dtype, value.ndim, value.shape[value.ndim - element_dims :] if element_dims else ()))
+            elif isinstance(value, Ndarray):  # Taichi's own array, on the device (checkpoints)
+                key.append((type(value), value.element_type, len(value.shape), value.grad is not None))
+            else:
                 return None
-            key.append((value.dtype, value.ndim, value.shape[value.ndim - element_dims :] if element_dims else ()))
         elif not isinstance(value, (int, np.integer)):
             return None
     return tuple(key)
@@ -177,15 +183,16 @@ def _set_and_launch(plan: _Plan, kinds: tuple, args: tuple) -> None:
             context.set_arg_int(slot, int(value))
         elif kind == _UINT:
             context.set_arg_uint(slot, int(value))
-        else:
+        elif type(value) is np.ndarray:
             shape = value.shape[: value.ndim - element_dims] if element_dims else value.shape
             context.set_arg_external_array_with_shape(slot, int(value.ctypes.data), value.nbytes, shape, 0)
+        elif value.grad is None:
+            context.set_arg_ndarray(slot, value.arr)
+        else:
+            context.set_arg_ndarray_with_grad(slot, value.arr, value.grad.arr)
         index += 1
-    program = plan.program
     try:
-        program.launch_kernel(
-            program.compile_kernel(program.config(), program.get_device_caps(), plan.compiled), context
-        )
+        plan.program.launch_kernel(plan.code, context)
     except Exception as e:  # noqa: BLE001  (as Taichi's launch reports a failed kernel: its C++ exceptions)
         raise handle_exception_from_cpp(e) from None
 
