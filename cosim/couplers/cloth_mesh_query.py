@@ -73,7 +73,7 @@ def closest_point_on_triangle(x, a, b, c):
 
 def face_hash(verts: np.ndarray, faces: np.ndarray, band: float, table: int) -> tuple[float, np.ndarray, np.ndarray]:
     """(h, start, entries): cell size [m], offsets (table + 1) and face ids (<= 8 F) sorted by cell key."""
-    tri = verts[faces]
+    tri = verts.take(faces, axis=0)
     lo, hi = tri.min(axis=1) - band, tri.max(axis=1) + band
     h = float((hi - lo).max()) * (1.0 + 1e-9)
     lo_c = np.floor(lo / h).astype(np.int64)

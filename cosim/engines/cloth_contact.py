@@ -129,7 +129,7 @@ class RigidContact:
 
     def points(self, x: np.ndarray) -> np.ndarray:
         """(V + F, 3) [m]: the vertices, then the face centroids."""
-        return np.concatenate([x, x[self.faces].mean(axis=1)])
+        return np.concatenate([x, x.take(self.faces, axis=0).mean(axis=1)])  # take: x[faces] is slower
 
     def prepare(self, x_n: np.ndarray, planes: dict[str, ContactPlanes]) -> ContactSet:
         """The contacts of a step starting at positions x_n (V, 3) with each source's planes."""

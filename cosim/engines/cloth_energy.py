@@ -127,8 +127,8 @@ class _Elements:
     """Elements of one kind (faces or hinges) of a mesh in ``CHUNK``-row pieces (padded with the last row):
     each piece's vertex indices and its per-element data, put on JAX's device once. ``apply`` runs a
     jitted, vmapped element function piece by piece on the vertices' positions gathered for it; what is
-    made once per mesh is not made at each call (the padding was 66 ``np.pad`` a step of cloth_catch,
-    the data's conversion and the gather through ``x[indices]`` about half of a call's 90 us)."""
+    made once per mesh is not made at each call (padding, the data's conversion), and the gather is
+    ``x.take`` (NumPy's ``x[indices]`` with 2D indices is several times slower)."""
 
     def __init__(self, elements: np.ndarray, *data: np.ndarray) -> None:
         self.n = len(elements)
@@ -181,14 +181,6 @@ class ElasticEnergy:
         self._hinges = _Elements(self.hinges, self.hinge_weight, self.rest_angle)
         self.dofs = [element_dofs(self.faces), element_dofs(self.hinges)]
 
-    def _per_face(self, fn, x: np.ndarray) -> np.ndarray:
-        """A ``_batched`` membrane function at positions x, one row per face."""
-        return self._faces.apply(fn, x)
-
-    def _per_hinge(self, fn, x: np.ndarray) -> np.ndarray:
-        """A ``_batched`` bending function at positions x, one row per hinge."""
-        return self._hinges.apply(fn, x)
-
     def angles(self, x: np.ndarray) -> np.ndarray:
         """(H,) [rad] dihedral angle of every hinge at positions x."""
         if len(self.hinges) == 0:
@@ -197,18 +189,18 @@ class ElasticEnergy:
 
     def energies(self, x: np.ndarray) -> tuple[float, float]:
         """(membrane, bending) unit-stiffness energies [m^2], [1] at positions x."""
-        mem = float(np.sum(self._per_face(_MEMBRANE[0], x)))
+        mem = float(np.sum(self._faces.apply(_MEMBRANE[0], x)))
         if len(self.hinges) == 0:
             return mem, 0.0
-        return mem, float(np.sum(self._per_hinge(_BENDING[0], x)))
+        return mem, float(np.sum(self._hinges.apply(_BENDING[0], x)))
 
     def gradients(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(membrane, bending) unit-stiffness gradients, each (V, 3)."""
         V = len(x)
-        g_mem = self._per_face(_MEMBRANE[1], x).reshape(-1)
+        g_mem = self._faces.apply(_MEMBRANE[1], x).reshape(-1)
         out = [np.bincount(self.dofs[0].ravel(), g_mem, minlength=3 * V).reshape(V, 3)]
         if len(self.hinges):
-            g_bend = self._per_hinge(_BENDING[1], x).reshape(-1)
+            g_bend = self._hinges.apply(_BENDING[1], x).reshape(-1)
             out.append(np.bincount(self.dofs[1].ravel(), g_bend, minlength=3 * V).reshape(V, 3))
         else:
             out.append(np.zeros((V, 3)))
@@ -216,10 +208,10 @@ class ElasticEnergy:
 
     def hessians(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(membrane (F, 9, 9), bending (H, 12, 12)) unit-stiffness element Hessians."""
-        H_mem = self._per_face(_MEMBRANE[2], x).reshape(len(self.faces), 9, 9)
+        H_mem = self._faces.apply(_MEMBRANE[2], x).reshape(len(self.faces), 9, 9)
         if len(self.hinges) == 0:
             return H_mem, np.zeros((0, 12, 12))
-        return H_mem, self._per_hinge(_BENDING[2], x).reshape(len(self.hinges), 12, 12)
+        return H_mem, self._hinges.apply(_BENDING[2], x).reshape(len(self.hinges), 12, 12)
 
 
 def project_psd(H: np.ndarray) -> np.ndarray:

@@ -1,6 +1,6 @@
 """Class kernels launched without Taichi's per-call Python once they are compiled for their arguments.
 
-Taichi's ``Kernel.__call__`` spends 10-30 us of Python on every launch before the kernel runs: it sorts every
+Taichi's ``Kernel.__call__`` spends tens of microseconds of Python on every launch before the kernel runs: it sorts every
 argument into a template key (several ``isinstance`` tests each), looks the compiled instance up by that key,
 checks the fields are placed, then sets each argument through a chain of type tests. A small scene's frame
 launches ten kernels whose loops take microseconds (``cosim bench contact --profile``), and on a GPU the
