@@ -31,7 +31,7 @@ from taichi.types.utils import is_signed
 
 _TEMPLATE, _FLOAT, _INT, _UINT, _ARRAY = range(5)
 _SCALARS = (bool, int, float, str, type(None), np.generic)
-_NOT_LEAN = object()  # a template argument the lean path does not key (a list, a dict...)
+_UNSET = object()  # a kernel's kinds not yet read
 
 
 def _argument_kinds(kernel) -> tuple | None:
@@ -56,18 +56,16 @@ def _argument_kinds(kernel) -> tuple | None:
 
 def _template_key(value):
     """What tells one compiled instance from another: a number or string by type and value, a tuple by its
-    items, anything else by identity (the plan holds the object, so its id is not reused meanwhile)."""
+    items, anything else by identity (the plan holds the object, so its id is not reused meanwhile); None
+    where the lean path does not key it (a list, a dict, a set, or a tuple holding one)."""
     if isinstance(value, _SCALARS):
         return (type(value), value)  # the type too: Taichi's key takes 1 and True as one, this plan need not
     if type(value) is tuple:
-        return tuple(_template_key(item) for item in value)
+        items = tuple(_template_key(item) for item in value)
+        return None if None in items else items
     if isinstance(value, (list, dict, set)):
-        return _NOT_LEAN
+        return None
     return id(value)
-
-
-def _contains(key, marker) -> bool:
-    return key is marker or (type(key) is tuple and any(_contains(item, marker) for item in key))
 
 
 class _Plan:
@@ -125,8 +123,8 @@ def _launch(kernel, owner, args: tuple, kwargs: dict):
 
 def _kinds(kernel) -> tuple | None:
     """``_argument_kinds`` of a kernel, kept on it (its arguments are read when it is made)."""
-    kinds = getattr(kernel, "_lean_kinds", _NOT_LEAN)
-    if kinds is _NOT_LEAN:
+    kinds = getattr(kernel, "_lean_kinds", _UNSET)
+    if kinds is _UNSET:
         kinds = None if kernel.return_type is not None else _argument_kinds(kernel)
         kernel._lean_kinds = kinds
     return kinds
@@ -150,7 +148,7 @@ def _call_key(kinds: tuple, args: tuple):
     for (kind, element_dims), value in zip(kinds[1:], args[1:]):
         if kind == _TEMPLATE:
             part = _template_key(value)
-            if _contains(part, _NOT_LEAN):
+            if part is None:
                 return None
             key.append(part)
         elif kind == _FLOAT:
